@@ -1,0 +1,76 @@
+"""Simulated agents: rational under their own θ, acting in a world whose θ may differ.
+
+Trials come out in the held-trajectory layout of the design (``[n_agents, n_trials, T]`` with
+``state``, ``action``, ``target``, ``mask``, ``task_theta``), plus the ground truth an
+experimenter never has: ``theta`` and the agent's ``belief``.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
+from torchrl.modules import ProbabilisticActor
+
+from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
+from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.task_env import TaskEnv
+
+__all__ = ["boltzmann_policy", "simulate_agents", "first_trial_mask"]
+
+
+def boltzmann_policy(model: TaskModel, q_network: torch.nn.Module, temperature: float) -> TensorDictSequential:
+    """A TorchRL policy sampling actions from ``softmax(Q(b, ·, θ) / temperature)``."""
+    return TensorDictSequential(
+        BeliefFeatures(model),
+        TensorDictModule(lambda f: q_network(f) / temperature, in_keys=["features"], out_keys=["logits"]),
+        ProbabilisticActor(
+            TensorDictModule(lambda logits: logits, in_keys=["logits"], out_keys=["logits"]),
+            in_keys=["logits"],
+            distribution_class=torch.distributions.Categorical,
+            spec=model.action_spec,
+        ),
+    )
+
+
+def first_trial_mask(done: torch.Tensor) -> torch.Tensor:
+    """Steps up to and including the first ``done`` of each row of ``done [..., T]``."""
+    before = torch.cumsum(done.long(), -1) - done.long()
+    return before == 0
+
+
+def simulate_agents(
+    model: TaskModel,
+    policy: TensorDictSequential,
+    theta: torch.Tensor,
+    n_trials: int,
+    task_theta: torch.Tensor | None = None,
+    seed: int = 0,
+) -> TensorDict:
+    """Run ``n_trials`` trials for each agent θ (``[n_agents, d]``) and return held trials.
+
+    Args:
+        policy: a TorchRL policy reading the belief (e.g. :func:`boltzmann_policy`).
+        task_theta: the world's θ, ``[d]`` or ``[n_agents, d]``; ``None``: each agent's own.
+    """
+    space = model.theta_space
+    theta = space.validate(theta, "theta")
+    n_agents = theta.shape[0]
+    batch = (n_agents, n_trials)
+    world = None
+    if task_theta is not None:
+        world = space.validate(task_theta, "task_theta").expand(n_agents, -1)
+        world = world.unsqueeze(1).expand(*batch, -1)
+    env = TransformedEnv(
+        TaskEnv(model, batch_size=batch, theta=theta.unsqueeze(1).expand(*batch, -1),
+                task_theta=world, seed=seed),
+        EKFBelief(model),
+    )
+    with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        torch.manual_seed(seed)
+        rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
+    keys = ["state", "action", "target", "task_theta", "theta", "belief"]
+    trials = rollout.select(*keys)
+    trials["mask"] = first_trial_mask(rollout["next", "done"].squeeze(-1))
+    return trials

@@ -1,0 +1,131 @@
+"""The task model: one description of a POMDP family, shared by env, belief filter and inverse.
+
+A task is written once as a :class:`TaskModel`: θ space, transition ``f(s, a, θ)`` with
+Gaussian process noise, observation ``h(s, θ)`` with Gaussian observation noise, the initial
+state and belief, the stop rule, and the reward. The environment steps the world with the
+task's θ, :class:`~irc_torchrl.envs.belief.EKFBelief` runs the agent's belief with the agent's
+θ, and the inverse objective re-runs that filter under candidate θ.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import torch
+from torchrl.data import TensorSpec
+
+from irc_torchrl.theta import ThetaSpace
+
+__all__ = ["TaskModel"]
+
+
+class TaskModel(abc.ABC):
+    """A parameterised POMDP with Gaussian noise, written in batched torch ops.
+
+    All methods take tensors with arbitrary leading batch dimensions ``*B`` and must be
+    differentiable in ``theta`` (the inverse objective backpropagates through them).
+    """
+
+    #: the θ space of the family (and its prior)
+    theta_space: ThetaSpace
+    #: dimensions of the latent state, the agent's observation and the target
+    state_dim: int
+    observation_dim: int
+    target_dim: int
+    #: the longest trial, in steps
+    max_steps: int
+    #: the action spec of one environment (no batch dimensions)
+    action_spec: TensorSpec
+
+    # --- world ---------------------------------------------------------------------------
+    @abc.abstractmethod
+    def initial_state(
+        self, theta: torch.Tensor, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Draw ``(state, target)`` for a batch of trials with task parameters ``theta``."""
+
+    @abc.abstractmethod
+    def transition(self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """The noise-free next state ``f(s, a, θ)``."""
+
+    @abc.abstractmethod
+    def process_cov(self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """Covariance ``[*B, ds, ds]`` of the process noise added to ``f(s, a, θ)``."""
+
+    def observe(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """The noise-free observation ``h(s, θ)``; tasks without observations keep the default."""
+        return state.new_zeros(*state.shape[:-1], 0)
+
+    def observation_cov(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """Covariance ``[*B, do, do]`` of the observation noise."""
+        return state.new_zeros(*state.shape[:-1], 0, 0)
+
+    @abc.abstractmethod
+    def stops(self, action: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+        """Whether ``action`` taken at ``step`` ends the trial by stopping, ``[*B, 1]`` bool."""
+
+    @abc.abstractmethod
+    def reward(
+        self,
+        state: torch.Tensor,
+        target: torch.Tensor,
+        action: torch.Tensor,
+        stop: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
+        """The reward ``[*B, 1]`` the world pays for ``action`` taken in ``state``."""
+
+    # --- agent ---------------------------------------------------------------------------
+    @abc.abstractmethod
+    def initial_belief(
+        self, state: torch.Tensor, target: torch.Tensor, theta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The agent's belief ``(mean, cov)`` at the start of a trial (the target is seen)."""
+
+    @abc.abstractmethod
+    def belief_reward(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        target: torch.Tensor,
+        action: torch.Tensor,
+        stop: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
+        """The reward the agent expects under its Gaussian belief: the paper's ``R_θ(b, a)``."""
+
+    @abc.abstractmethod
+    def belief_features(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        target: torch.Tensor,
+        step: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
+        """What the actor and critic read: belief features, then normalised θ, ``[*B, df]``."""
+
+    @property
+    @abc.abstractmethod
+    def belief_feature_dim(self) -> int:
+        """How many leading entries of :meth:`belief_features` describe the belief."""
+
+    # --- Jacobians (override with analytic forms; tests check them against torch.func) ---
+    def transition_jacobian(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
+        """``∂f/∂s``, ``[*B, ds, ds]``, by ``jacrev`` under ``vmap``."""
+        return _batched_jacobian(lambda s, a, th: self.transition(s, a, th), state, action, theta)
+
+    def observation_jacobian(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """``∂h/∂s``, ``[*B, do, ds]``, by ``jacrev`` under ``vmap``."""
+        return _batched_jacobian(lambda s, th: self.observe(s, th), state, theta)
+
+
+def _batched_jacobian(fn, state: torch.Tensor, *args: torch.Tensor) -> torch.Tensor:
+    """Jacobian of ``fn`` with respect to its first argument, for every batch element."""
+    batch = state.shape[:-1]
+    flat = [state.reshape(-1, state.shape[-1])]
+    flat += [a.expand(*batch, *a.shape[len(batch):]).reshape(-1, *a.shape[len(batch):]) for a in args]
+    jac = torch.func.vmap(torch.func.jacrev(fn, argnums=0))(*flat)
+    return jac.reshape(*batch, *jac.shape[1:])

@@ -1,0 +1,178 @@
+"""A batched TorchRL environment over any :class:`TaskModel`, every element with its own θ."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from irc_torchrl.envs.model import TaskModel
+
+__all__ = ["TaskEnv"]
+
+
+class TaskEnv(EnvBase):
+    """The world of a task: true state, target and noisy observations, stepped with ``task_theta``.
+
+    Every batch element carries the agent's θ (``theta``) and the world's θ (``task_theta``).
+    At each reset, ``theta`` is drawn from the prior unless it was given (to the constructor,
+    held for every trial, or to :meth:`reset` for one reset); ``task_theta`` equals ``theta``
+    unless given. The agent's belief is added by :class:`~irc_torchrl.envs.belief.EKFBelief`.
+
+    Args:
+        model: the task.
+        batch_size: leading batch dimensions (``()`` for one environment).
+        theta: agent θ for every trial, ``[*batch_size, d]`` or ``[d]``; ``None`` draws from
+            the prior.
+        task_theta: world θ, likewise; ``None`` means equal to the agent's.
+        device: where tensors live.
+        seed: seed of the environment's generator.
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        model: TaskModel,
+        batch_size: Sequence[int] | torch.Size = (),
+        theta: torch.Tensor | None = None,
+        task_theta: torch.Tensor | None = None,
+        device: torch.device | str | None = None,
+        seed: int | None = None,
+    ) -> None:
+        super().__init__(device=device, batch_size=torch.Size(batch_size))
+        self.model = model
+        self.theta = None if theta is None else self._check_theta(theta, "theta")
+        self.task_theta = (
+            None if task_theta is None else self._check_theta(task_theta, "task_theta")
+        )
+        self._make_specs()
+        self.rng = torch.Generator(device=self.device if self.device is not None else "cpu")
+        self.set_seed(0 if seed is None else seed)
+
+    def _check_theta(self, theta: torch.Tensor, field: str) -> torch.Tensor:
+        theta = torch.as_tensor(theta, dtype=torch.float32, device=self.device)
+        self.model.theta_space.validate(theta, field)
+        try:
+            return theta.expand(*self.batch_size, self.model.theta_space.dim).clone()
+        except RuntimeError:
+            raise ValueError(
+                f"{field}: expected shape [{self.model.theta_space.dim}] or "
+                f"{[*self.batch_size, self.model.theta_space.dim]}, got {list(theta.shape)}"
+            ) from None
+
+    def _make_specs(self) -> None:
+        m, batch, device = self.model, self.batch_size, self.device
+        observation = {
+            "theta": m.theta_space.spec(batch, device),
+            "task_theta": m.theta_space.spec(batch, device),
+            "state": Unbounded(shape=(*batch, m.state_dim), device=device),
+            "target": Unbounded(shape=(*batch, m.target_dim), device=device),
+            "step": Bounded(0, m.max_steps, shape=(*batch, 1), dtype=torch.int64, device=device),
+        }
+        if m.observation_dim:
+            observation["observation"] = Unbounded(shape=(*batch, m.observation_dim), device=device)
+        self.observation_spec = Composite(observation, shape=batch, device=device)
+        self.action_spec = m.action_spec.expand(*batch, *m.action_spec.shape).to(device)
+        # bounds of a box action spec, read once: the per-step check then costs two comparisons
+        spec = self.action_spec
+        self._action_bounds = (spec.low, spec.high) if hasattr(spec, "low") else None
+        self.reward_spec = Unbounded(shape=(*batch, 1), device=device)
+        self.done_spec = Composite(
+            {
+                key: Bounded(0, 1, shape=(*batch, 1), dtype=torch.bool, device=device)
+                for key in ("done", "terminated", "truncated")
+            },
+            shape=batch,
+            device=device,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed) if seed is not None else 0)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        space, batch = self.model.theta_space, self.batch_size
+        theta = kwargs.get("theta")
+        theta = self._check_theta(theta, "theta") if theta is not None else self.theta
+        if theta is None:
+            theta = space.sample(batch, generator=self.rng, device=self.device)
+        task_theta = kwargs.get("task_theta")
+        if task_theta is not None:
+            task_theta = self._check_theta(task_theta, "task_theta")
+        else:
+            task_theta = self.task_theta
+        if task_theta is None:
+            task_theta = theta
+        state, target = self.model.initial_state(task_theta, self.rng)
+        fresh = {
+            "theta": theta,
+            "task_theta": task_theta,
+            "state": state,
+            "target": target,
+            "step": torch.zeros(*batch, 1, dtype=torch.int64, device=self.device),
+        }
+        if self.model.observation_dim:
+            fresh["observation"] = self._observe(state, task_theta)
+        # TorchRL keeps the rows that a partial reset (``_reset``) leaves alone
+        return TensorDict(fresh, batch_size=batch, device=self.device)
+
+    def _sample_noise(self, cov: torch.Tensor) -> torch.Tensor:
+        """A draw from ``N(0, cov)`` for a PSD ``cov`` (a zero variance gives zero noise)."""
+        jitter = 1e-12 * torch.eye(cov.shape[-1], dtype=torch.float64, device=cov.device)
+        chol = torch.linalg.cholesky(cov.to(torch.float64) + jitter).to(cov.dtype)
+        eps = torch.randn(
+            *cov.shape[:-1], 1, generator=self.rng, device=cov.device, dtype=cov.dtype
+        )
+        return (chol @ eps).squeeze(-1)
+
+    def _observe(self, state: torch.Tensor, task_theta: torch.Tensor) -> torch.Tensor:
+        noise = self._sample_noise(self.model.observation_cov(state, task_theta))
+        return self.model.observe(state, task_theta) + noise
+
+    def _check_action(self, action: torch.Tensor) -> None:
+        """Raise a one-line error unless ``action`` has the spec's shape and in-bound values."""
+        spec = self.action_spec
+        if action.shape != spec.shape:
+            raise ValueError(f"action: expected shape {list(spec.shape)}, got {list(action.shape)}")
+        if self._action_bounds is not None:  # a comparison fails on NaN too
+            low, high = self._action_bounds
+            valid = bool(((action >= low) & (action <= high)).all())
+        else:
+            valid = spec.is_in(action)
+        if valid:
+            return
+        if action.is_floating_point() and not torch.isfinite(action).all():
+            raise ValueError("action: expected finite values, got NaN or inf")
+        raise ValueError(
+            f"action: expected values within the bounds of the {type(spec).__name__} action "
+            f"spec, got values in [{action.min().item()}, {action.max().item()}]"
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        m = self.model
+        state, action, step = tensordict["state"], tensordict["action"], tensordict["step"]
+        self._check_action(action)
+        task_theta, target = tensordict["task_theta"], tensordict["target"]
+        stop = m.stops(action, step)
+        reward = m.reward(state, target, action, stop, task_theta)
+        next_state = m.transition(state, action, task_theta)
+        next_state = next_state + self._sample_noise(m.process_cov(state, action, task_theta))
+        next_step = step + 1
+        timeout = next_step >= m.max_steps
+        out = {
+            "theta": tensordict["theta"],
+            "task_theta": task_theta,
+            "state": next_state,
+            "target": target,
+            "step": next_step.clamp_max(m.max_steps),
+            "reward": reward,
+            "done": stop | timeout,
+            "terminated": stop | timeout,
+            "truncated": timeout & ~stop,
+        }
+        if m.observation_dim:
+            out["observation"] = self._observe(next_state, task_theta)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)

@@ -1,0 +1,152 @@
+"""The inverse objective (Algorithm 2): the likelihood of an agent's actions under candidate θ.
+
+For each candidate θ the agent's belief is re-run along the recorded trials with the same
+filter the agent used (:func:`~irc_torchrl.envs.belief.ekf_step`), fed to the frozen policy
+through the action model, and the recorded actions are scored. Where the agent's model is the
+world's (``world="shared"``) the recorded state transitions are scored too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.objectives import LossModule
+
+from irc_torchrl.envs.belief import ekf_step
+from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.theta import ThetaSpace
+
+__all__ = ["InverseRationalLoss"]
+
+
+class InverseRationalLoss(LossModule):
+    """Negative log-likelihood of held trials ``[n_agents, n_trials, T]`` under θ.
+
+    θ to fit lives in ``theta_free`` (unconstrained coordinates of the free parameters, one
+    row per agent); fixed parameters take their values from ``theta_space``. The nuisance
+    parameters of the action model (e.g. ``log τ``) live in ``nuisance``.
+
+    Args:
+        model: the task.
+        action_model: scores actions given belief features (its network is frozen).
+        theta_space: which parameters are free; defaults to the model's.
+        n_agents: how many agents are fitted at once (independent rows).
+        world: ``"known"`` if the world's θ is the recorded ``task_theta`` (actions alone
+            inform θ), ``"shared"`` if the agent's model is the world's (transitions count too).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        state: str = "state"
+        action: str = "action"
+        target: str = "target"
+        mask: str = "mask"
+        task_theta: str = "task_theta"
+
+    default_keys = _AcceptedKeys
+    out_keys = ["loss_nll", "log_likelihood"]
+
+    def __init__(
+        self,
+        model: TaskModel,
+        action_model: nn.Module,
+        theta_space: ThetaSpace | None = None,
+        n_agents: int = 1,
+        world: str = "known",
+    ) -> None:
+        super().__init__()
+        if world not in ("known", "shared"):
+            raise ValueError(f"world: expected 'known' or 'shared', got {world!r}")
+        self.model = model
+        self.action_model = action_model
+        self.theta_space = theta_space if theta_space is not None else model.theta_space
+        self.world = world
+        free = self.theta_space.free_mask
+        start = self.theta_space.to_unconstrained(self.theta_space.default(torch.float64))[free]
+        self.theta_free = nn.Parameter(start.expand(n_agents, -1).clone())
+        self.nuisance = nn.Parameter(action_model.nuisance_init.double().expand(n_agents, -1).clone())
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        """No value estimator: the objective is a likelihood, not a TD target."""
+
+    @property
+    def parameter_names(self) -> list[str]:
+        """Names of the fitted coordinates: free θ, then the nuisance parameters."""
+        return [*self.theta_space.free_names, *self.action_model.nuisance_names]
+
+    def theta(self, theta_free: torch.Tensor | None = None) -> torch.Tensor:
+        """Full natural θ ``[n, d]`` from unconstrained free coordinates ``[n, d_free]``."""
+        theta_free = self.theta_free if theta_free is None else theta_free
+        space = self.theta_space
+        full = space.default(theta_free.dtype, theta_free.device).expand(theta_free.shape[0], -1)
+        u = space.to_unconstrained(full).clone()
+        u[:, space.free_mask.to(theta_free.device)] = theta_free
+        natural = space.from_unconstrained(u)
+        return torch.where(space.free_mask.to(theta_free.device), natural, full)
+
+    def log_likelihood(
+        self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
+    ) -> torch.Tensor:
+        """Log-likelihood per agent ``[n_agents]`` of trials ``[n_agents, n_trials, T]``."""
+        keys = self.tensor_keys
+        dtype = theta.dtype
+        state = trials[keys.state].to(dtype)
+        target = trials[keys.target][:, :, 0].to(dtype)
+        action, mask = trials[keys.action], trials[keys.mask]
+        theta_b = theta.unsqueeze(1).expand(*state.shape[:2], -1)
+        means, covs = self.beliefs(theta_b, state, action, target)
+        steps = torch.arange(state.shape[2], device=state.device).view(1, 1, -1, 1)
+        features = self.model.belief_features(
+            means, covs, target.unsqueeze(2), steps, theta_b.unsqueeze(2)
+        )
+        # score only the recorded steps: trials end at different times
+        agent = torch.arange(state.shape[0], device=state.device).view(-1, 1, 1).expand_as(mask)[mask]
+        logp = self.action_model.log_prob(features[mask], action[mask], nuisance[agent])
+        total = torch.zeros(state.shape[0], dtype=dtype, device=state.device).index_add(0, agent, logp)
+        if self.world == "shared":
+            total = total + self._transition_log_likelihood(theta_b, state, action, mask)
+        return total
+
+    def beliefs(
+        self, theta_b: torch.Tensor, state: torch.Tensor, action: torch.Tensor, target: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The agent's beliefs ``[A, n, T, ds]``, ``[A, n, T, ds, ds]`` at every recorded step.
+
+        The filter runs under ``theta_b`` along the recorded actions; where the task has
+        observations, the agent's are taken at their most probable value given the recorded
+        state (the paper's hard E-step).
+        """
+        mean, cov = self.model.initial_belief(state[:, :, 0], target, theta_b)
+        means, covs = [mean], [cov]
+        for t in range(state.shape[2] - 1):
+            observation = (
+                self.model.observe(state[:, :, t + 1], theta_b) if self.model.observation_dim else None
+            )
+            mean, cov = ekf_step(self.model, mean, cov, action[:, :, t], observation, theta_b)
+            means.append(mean)
+            covs.append(cov)
+        return torch.stack(means, 2), torch.stack(covs, 2)
+
+    def _transition_log_likelihood(self, theta_b, state, action, mask) -> torch.Tensor:
+        """``Σ log N(s_{t+1}; f(s_t, a_t, θ), Q(θ))`` over consecutive valid steps."""
+        prev, nxt = state[:, :, :-1], state[:, :, 1:]
+        theta_t = theta_b.unsqueeze(2).expand(*prev.shape[:3], -1)
+        mean = self.model.transition(prev, action[:, :, :-1], theta_t)
+        cov = self.model.process_cov(prev, action[:, :, :-1], theta_t)
+        chol = torch.linalg.cholesky(cov)
+        z = torch.linalg.solve_triangular(chol, (nxt - mean).unsqueeze(-1), upper=False).squeeze(-1)
+        logp = -0.5 * (z**2).sum(-1) - chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        logp = logp - 0.5 * state.shape[-1] * math.log(2 * math.pi)
+        valid = mask[:, :, :-1] & mask[:, :, 1:]
+        return torch.where(valid, logp, torch.zeros_like(logp)).sum((1, 2))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        theta = self.theta(self.theta_free)
+        log_likelihood = self.log_likelihood(theta, self.nuisance, tensordict)
+        return TensorDict(
+            loss_nll=-log_likelihood.sum(), log_likelihood=log_likelihood.detach(), batch_size=[]
+        )
