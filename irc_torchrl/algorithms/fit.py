@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
+from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -65,6 +66,7 @@ def fit_theta(
     per agent is kept. Returns θ̂, 95% intervals from the observed Fisher
     information, identifiability flags, the log-likelihood and whether each fit converged.
     """
+    trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents = trials.shape[0]
     free = space.free_mask

@@ -39,7 +39,6 @@ class QIterationConfig:
     n_theta_basis: int = 16
     belief_scale: float = 3.0
     theta_scale: float = 1.5
-    seed: int = 0
 
 
 def make_q_policy(model: TaskModel, q: FactorisedQ, epsilon: float = 0.0) -> TensorDictSequential:
@@ -113,43 +112,45 @@ class FittedQIteration:
 def train_factorised_q(
     model: TaskModel,
     config: QIterationConfig = QIterationConfig(),
+    seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
 ) -> FactorisedQ:
     """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)."""
-    torch.manual_seed(config.seed)
-    env = TransformedEnv(
-        TaskEnv(model, batch_size=(config.n_envs,), seed=config.seed),
-        Compose(EKFBelief(model), BeliefReward(model)),
-    )
-    q = FactorisedQ(
-        model.belief_feature_dim,
-        model.theta_space.dim,
-        int(model.action_spec.n),
-        config.n_belief_basis,
-        config.n_theta_basis,
-        config.belief_scale,
-        config.theta_scale,
-        seed=config.seed,
-    )
-    features = BeliefFeatures(model)
-    solver = FittedQIteration(q, config.gamma, config.ridge)
-    for round_ in range(config.rounds):
-        policy = None if round_ == 0 else make_q_policy(model, q, config.epsilon)
-        with torch.no_grad():
-            rollout = env.rollout(
-                config.steps_per_round, policy, break_when_any_done=False
-            ).reshape(-1)
-        solver.add(
-            TensorDict(
-                features=features(rollout.clone())["features"],
-                action=rollout["action"],
-                reward=rollout["next", "reward"],
-                next_features=features(rollout["next"].clone())["features"],
-                terminated=rollout["next", "terminated"],
-                batch_size=rollout.batch_size,
-            )
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)  # ε-greedy draws from the global generator
+        env = TransformedEnv(
+            TaskEnv(model, batch_size=(config.n_envs,), seed=seed),
+            Compose(EKFBelief(model), BeliefReward(model)),
         )
-        solver.fit(config.sweeps)
-        if progress is not None:
-            progress(round_ + 1, config.rounds)
+        q = FactorisedQ(
+            model.belief_feature_dim,
+            model.theta_space.dim,
+            int(model.action_spec.n),
+            config.n_belief_basis,
+            config.n_theta_basis,
+            config.belief_scale,
+            config.theta_scale,
+            seed=seed,
+        )
+        features = BeliefFeatures(model)
+        solver = FittedQIteration(q, config.gamma, config.ridge)
+        for round_ in range(config.rounds):
+            policy = None if round_ == 0 else make_q_policy(model, q, config.epsilon)
+            with torch.no_grad():
+                rollout = env.rollout(
+                    config.steps_per_round, policy, break_when_any_done=False
+                ).reshape(-1)
+            solver.add(
+                TensorDict(
+                    features=features(rollout.clone())["features"],
+                    action=rollout["action"],
+                    reward=rollout["next", "reward"],
+                    next_features=features(rollout["next"].clone())["features"],
+                    terminated=rollout["next", "terminated"],
+                    batch_size=rollout.batch_size,
+                )
+            )
+            solver.fit(config.sweeps)
+            if progress is not None:
+                progress(round_ + 1, config.rounds)
     return q

@@ -1,0 +1,96 @@
+"""Held trials: the layout the inverse reads, and the checks that protect a fit from bad data.
+
+Held trials are a TensorDict ``[n_agents, n_trials, T]`` (or ``[n_trials, T]`` for one agent)
+with ``state [.., T, ds]``, ``action`` (``[.., T]`` discrete or ``[.., T, da]`` continuous),
+``target [.., T, dt]``, ``mask [.., T]`` (the recorded steps, a prefix of each trial) and
+``task_theta [.., T, d]``. :func:`validate_trials` checks all of it before any work is done.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Categorical, TensorSpec
+
+from irc_torchrl.envs.model import TaskModel
+
+__all__ = ["TRIAL_KEYS", "validate_trials", "action_in_spec"]
+
+#: the fields every held trial has
+TRIAL_KEYS = ("state", "action", "target", "mask", "task_theta")
+
+
+def action_in_spec(spec: TensorSpec, action: torch.Tensor) -> torch.Tensor:
+    """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous)."""
+    if isinstance(spec, Categorical):
+        integral = action == action.round() if action.is_floating_point() else torch.ones_like(action, dtype=torch.bool)
+        return integral & (action >= 0) & (action < spec.n)
+    low, high = spec.space.low.to(action.device), spec.space.high.to(action.device)
+    return ((action >= low) & (action <= high)).all(-1)
+
+
+def _where(bad: torch.Tensor) -> str:
+    """Human-readable position of the first ``True`` of ``bad [A, n, T]``."""
+    a, i, t = (int(x) for x in bad.nonzero()[0])
+    return f"agent {a}, trial {i}, step {t}"
+
+
+def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
+    """Return ``trials`` as ``[n_agents, n_trials, T]`` if they are well formed, else raise.
+
+    Checks presence and shapes of every field, that ``mask`` marks a non-empty prefix of
+    each trial, that recorded steps are finite, that actions lie in the task's action set,
+    and that ``task_theta`` lies in the θ space.
+    """
+    if not isinstance(trials, TensorDictBase):
+        raise TypeError(f"trials: expected a TensorDict [n_agents, n_trials, T], got {type(trials).__name__}")
+    missing = [k for k in TRIAL_KEYS if k not in trials.keys()]
+    if missing:
+        raise KeyError(f"trials: missing field(s) {missing}; held trials need {list(TRIAL_KEYS)}")
+    if trials.ndim == 2:
+        trials = trials.unsqueeze(0)
+    if trials.ndim != 3:
+        raise ValueError(f"trials: expected batch dims [n_agents, n_trials, T], got {list(trials.batch_size)}")
+    continuous = not isinstance(model.action_spec, Categorical)
+    expected = {
+        "state": (model.state_dim,),
+        "target": (model.target_dim,),
+        "task_theta": (model.theta_space.dim,),
+        "mask": (),
+        "action": tuple(model.action_spec.shape) if continuous else (),
+    }
+    for key, tail in expected.items():
+        shape = tuple(trials[key].shape[3:])
+        if shape != tail:
+            raise ValueError(
+                f"trials: field {key!r} expected shape [n_agents, n_trials, T{''.join(f', {d}' for d in tail)}], "
+                f"got {list(trials[key].shape)}"
+            )
+    mask = trials["mask"]
+    if mask.dtype != torch.bool:
+        raise TypeError(f"trials: field 'mask' expected dtype bool, got {mask.dtype}")
+    if not mask[..., 0].all():
+        raise ValueError(f"trials: field 'mask' marks no step at {_where(~mask[..., :1])}; every trial needs ≥ 1 step")
+    gaps = mask[..., 1:] & ~mask[..., :-1]
+    if gaps.any():
+        raise ValueError(f"trials: field 'mask' must mark a prefix of each trial; a gap ends at {_where(gaps)}")
+    for key in ("state", "target", "action"):
+        value = trials[key]
+        if value.is_floating_point():
+            bad = ~torch.isfinite(value).reshape(*mask.shape, -1).all(-1) & mask
+            if bad.any():
+                raise ValueError(f"trials: field {key!r} has NaN or inf at {_where(bad)}")
+    bad = ~action_in_spec(model.action_spec, trials["action"]) & mask
+    if bad.any():
+        raise ValueError(
+            f"trials: field 'action' at {_where(bad)} is {trials['action'][bad][0].tolist()}, "
+            f"outside the task's action set ({model.action_spec.__class__.__name__} {_describe(model.action_spec)})"
+        )
+    model.theta_space.validate(trials["task_theta"][mask], "trials: field 'task_theta'")
+    return trials
+
+
+def _describe(spec: TensorSpec) -> str:
+    if isinstance(spec, Categorical):
+        return f"0..{spec.n - 1}"
+    return f"[{spec.space.low.tolist()}, {spec.space.high.tolist()}]"
