@@ -17,13 +17,17 @@ def _demo(args: argparse.Namespace) -> int:
     config = load_config(args.config, overrides)
     summary = run_demo(config, args.out, show_progress=not args.quiet)
     print(format_summary(summary))
-    print(f"wrote {args.out}/summary.json, config.yaml, q_function.png, recovery.png, dp_comparison.png")
+    print(
+        f"wrote {args.out}/: summary.json, config.yaml, "
+        "q_function.png, recovery.png, dp_comparison.png"
+    )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="irc", description="Inverse Rational Control: what internal model makes behaviour rational?"
+        prog="irc",
+        description="Inverse Rational Control: what internal model makes behaviour rational?",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = commands.add_parser(
@@ -35,12 +39,21 @@ def build_parser() -> argparse.ArgumentParser:
             "and report coverage. Writes config.yaml, summary.json and figures into --out."
         ),
     )
-    demo.add_argument("--task", choices=["firefly1d"], default="firefly1d", help="the task (default firefly1d)")
+    demo.add_argument(
+        "--task", choices=["firefly1d"], default="firefly1d", help="the task (default firefly1d)"
+    )
     demo.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
-    demo.add_argument("--seed", type=int, default=None, help="seed of every random draw (default 0)")
+    demo.add_argument(
+        "--seed", type=int, default=None, help="seed of every random draw (default 0)"
+    )
     demo.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
-    demo.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. agents.n_agents=30")
+    demo.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="key=value",
+        help="config overrides, e.g. agents.n_agents=30",
+    )
     demo.set_defaults(run=_demo)
     return parser
 

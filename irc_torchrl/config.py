@@ -70,26 +70,32 @@ def _valid_keys(config: Any, prefix: str = "") -> list[str]:
     return keys
 
 
-def _set(config: Any, dotted: str, value: Any, root: Any) -> None:
+def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> None:
+    """Set the field at ``dotted`` below ``config`` (which sits at ``prefix`` in ``root``)."""
     head, _, rest = dotted.partition(".")
-    names = {f.name: f for f in dataclasses.fields(config)}
+    names = {f.name for f in dataclasses.fields(config)}
     if head not in names or (rest and not dataclasses.is_dataclass(getattr(config, head))):
-        raise KeyError(f"config: unknown key {dotted!r}; valid keys: {', '.join(_valid_keys(root))}")
+        valid = ", ".join(_valid_keys(root))
+        raise KeyError(f"config: unknown key {prefix + dotted!r}; valid keys: {valid}")
     current = getattr(config, head)
     if rest:
-        _set(current, rest, value, root)
+        _set(current, rest, value, root, f"{prefix}{head}.")
         return
     if dataclasses.is_dataclass(current):
         if not isinstance(value, dict):
-            raise ValueError(f"config: {head!r} expects a mapping of its fields, got {value!r}")
+            raise ValueError(f"config: {prefix + head!r} expects a mapping, got {value!r}")
         for key, sub in value.items():
-            _set(current, key, sub, root)
+            _set(current, key, sub, root, f"{prefix}{head}.")
         return
     kind = type(current)
     try:
-        cast = kind(value) if not (kind is bool and isinstance(value, str)) else value.lower() in ("1", "true", "yes")
+        if kind is bool and isinstance(value, str):
+            cast = value.lower() in ("1", "true", "yes")
+        else:
+            cast = kind(value)
     except (TypeError, ValueError):
-        raise ValueError(f"config: {dotted}={value!r} is not a valid {kind.__name__}") from None
+        name = prefix + dotted
+        raise ValueError(f"config: {name}={value!r} is not a valid {kind.__name__}") from None
     setattr(config, head, cast)
 
 
@@ -102,7 +108,9 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             raise FileNotFoundError(f"config: no file at {path}")
         data = yaml.safe_load(path.read_text()) or {}
         if not isinstance(data, dict):
-            raise ValueError(f"config: {path} must hold a mapping of keys, got {type(data).__name__}")
+            raise ValueError(
+                f"config: {path} must hold a mapping of keys, got {type(data).__name__}"
+            )
         for key, value in data.items():
             _set(config, key, value, config)
     for item in overrides:
@@ -111,5 +119,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             raise ValueError(f"config: override {item!r} must look like key=value")
         _set(config, key.strip(), yaml.safe_load(value), config)
     if config.agents.world not in ("known", "shared"):
-        raise ValueError(f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}")
+        raise ValueError(
+            f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}"
+        )
     return config

@@ -30,7 +30,9 @@ class Parameter:
 
     def __post_init__(self) -> None:
         if not self.low < self.high:
-            raise ValueError(f"parameter {self.name!r}: expected low < high, got [{self.low}, {self.high}]")
+            raise ValueError(
+                f"parameter {self.name!r}: expected low < high, got [{self.low}, {self.high}]"
+            )
         if not self.low <= self.default <= self.high:
             raise ValueError(
                 f"parameter {self.name!r}: default {self.default} outside [{self.low}, {self.high}]"
@@ -82,7 +84,9 @@ class ThetaSpace:
 
     def __repr__(self) -> str:
         parts = [
-            f"{p.name}={self.fixed[p.name]}" if p.name in self.fixed else f"{p.name}∈[{p.low}, {p.high}]"
+            f"{p.name}={self.fixed[p.name]}"
+            if p.name in self.fixed
+            else f"{p.name}∈[{p.low}, {p.high}]"
             for p in self.parameters
         ]
         return f"ThetaSpace({', '.join(parts)})"
@@ -141,9 +145,11 @@ class ThetaSpace:
 
     # --- validation ------------------------------------------------------------------------
     def validate(self, theta: torch.Tensor, field: str = "theta") -> torch.Tensor:
-        """Return ``theta`` if it is a finite ``[..., dim]`` tensor inside the bounds, else raise."""
+        """Return ``theta`` if it is a finite ``[..., dim]`` tensor within bounds, else raise."""
         if not isinstance(theta, torch.Tensor):
-            raise TypeError(f"{field}: expected a tensor of shape [..., {self.dim}], got {type(theta).__name__}")
+            raise TypeError(
+                f"{field}: expected a tensor of shape [..., {self.dim}], got {type(theta).__name__}"
+            )
         if theta.ndim == 0 or theta.shape[-1] != self.dim:
             raise ValueError(
                 f"{field}: expected shape [..., {self.dim}] ({', '.join(self.names)}), "
@@ -158,7 +164,9 @@ class ThetaSpace:
             i = int(bad.reshape(-1, self.dim).any(0).nonzero()[0])
             p = self.parameters[i]
             value = theta.reshape(-1, self.dim)[bad.reshape(-1, self.dim)[:, i], i][0].item()
-            raise ValueError(f"{field}: {p.name}={value:.6g} is outside its space [{p.low}, {p.high}]")
+            raise ValueError(
+                f"{field}: {p.name}={value:.6g} is outside its space [{p.low}, {p.high}]"
+            )
         return theta
 
     # --- coordinates -----------------------------------------------------------------------
@@ -224,7 +232,9 @@ class ThetaSpace:
         theta = (self.default(torch.float64) if base is None else base.to(torch.float64)).clone()
         for name, value in values.items():
             if name not in self._index:
-                raise KeyError(f"{field}: unknown θ parameter {name!r}; valid names: {', '.join(self.names)}")
+                raise KeyError(
+                    f"{field}: unknown θ parameter {name!r}; valid names: {', '.join(self.names)}"
+                )
             theta[..., self._index[name]] = float(value)
         return self.validate(theta.float(), field)
 

@@ -25,11 +25,14 @@ from irc_torchrl.plots import plot_dp_comparison, plot_q_function, plot_recovery
 __all__ = ["run_demo", "dp_comparison", "format_summary"]
 
 
-def dp_comparison(model: Firefly1DModel, q_network: torch.nn.Module, n_grid: int = 5, n_starts: int = 49):
+def dp_comparison(
+    model: Firefly1DModel, q_network: torch.nn.Module, n_grid: int = 5, n_starts: int = 49
+):
     """Learned greedy return against the DP optimum on a θ grid over the free parameters."""
     space = model.theta_space
     axes = [
-        torch.linspace(space[n].low, space[n].high, n_grid, dtype=torch.float64) for n in space.free_names
+        torch.linspace(space[n].low, space[n].high, n_grid, dtype=torch.float64)
+        for n in space.free_names
     ]
     grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
     theta = space.default(torch.float64).expand(grid.shape[0], -1).clone()
@@ -49,7 +52,11 @@ def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = Tru
     write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
 
     start = time.perf_counter()
-    with tqdm(total=config.q_iteration.rounds, desc="Algorithm 1: fitted Q-iteration", disable=not show_progress) as bar:
+    with tqdm(
+        total=config.q_iteration.rounds,
+        desc="Algorithm 1: fitted Q-iteration",
+        disable=not show_progress,
+    ) as bar:
         q = train_factorised_q(model, config.q_iteration, config.seed, lambda i, n: bar.update(1))
     train_s = time.perf_counter() - start
 
@@ -57,7 +64,9 @@ def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = Tru
     dp_ratio = float(learned.mean() / optimal.mean())
     per_theta = learned.mean(1) / optimal.mean(1)
 
-    with tqdm(total=config.fit.max_iter, desc="Algorithm 2: batched Newton fit", disable=not show_progress) as bar:
+    with tqdm(
+        total=config.fit.max_iter, desc="Algorithm 2: batched Newton fit", disable=not show_progress
+    ) as bar:
         _, recovery, _ = recover_agents(
             model, q, config.agents, config.fit, config.seed, progress=lambda i, n: bar.update(1)
         )
@@ -76,21 +85,35 @@ def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = Tru
     theta = model.theta_space.default(torch.float64).unsqueeze(0)
     relative = torch.linspace(-model.target_range, model.target_range, 241, dtype=torch.float64)
     target = -relative.view(-1, 1)
-    mean, cov = model.initial_belief(torch.zeros_like(target), target, theta.expand(len(relative), -1))
+    mean, cov = model.initial_belief(
+        torch.zeros_like(target), target, theta.expand(len(relative), -1)
+    )
     step = torch.zeros(len(relative), 1, dtype=torch.long)
     with torch.no_grad():
         q_learned = q(model.belief_features(mean, cov, target, step, theta).float())
-    plot_q_function(relative, q_learned, optimal_values(model, theta, relative)[0],
-                    model.theta_space.to_dict(theta[0]), out / "q_function.png")
+    plot_q_function(
+        relative,
+        q_learned,
+        optimal_values(model, theta, relative)[0],
+        model.theta_space.to_dict(theta[0]),
+        out / "q_function.png",
+    )
     plot_recovery(summary, out / "recovery.png")
-    plot_dp_comparison(optimal.mean(1), learned.mean(1), [str(t.tolist()) for t in theta_grid],
-                       out / "dp_comparison.png")
+    plot_dp_comparison(
+        optimal.mean(1),
+        learned.mean(1),
+        [str(t.tolist()) for t in theta_grid],
+        out / "dp_comparison.png",
+    )
     return summary
 
 
 def format_summary(summary: dict) -> str:
     """A readable table of the recovery (printed at the end of ``irc demo``)."""
-    lines = [f"{'parameter':<14}{'coverage':>10}{'median |err|':>14}{'median rel err':>16}{'median CI width':>17}"]
+    lines = [
+        f"{'parameter':<14}{'coverage':>10}{'median |err|':>14}"
+        f"{'median rel err':>16}{'median CI width':>17}"
+    ]
     for name, s in summary["parameters"].items():
         lines.append(
             f"{name:<14}{s['coverage']:>10.2f}{s['median_abs_error']:>14.4f}"

@@ -1,8 +1,8 @@
 """Exact dynamic programming on the 1D task's belief MDP, the yardstick for Algorithm 1.
 
 Without observations the 1D belief is deterministic: after ``t`` steps and ``k`` net moves the
-mean sits at ``μ₀ + g_a·k`` and the variance is ``σ²_init + t·σ₀²``. Backward induction over that lattice
-gives the optimal value for any θ and start exactly, with no grid interpolation.
+mean sits at ``μ₀ + g_a·k`` and the variance is ``σ²_init + t·σ₀²``. Backward induction over
+that lattice gives the optimal value for any θ and start exactly, with no grid interpolation.
 """
 
 from __future__ import annotations

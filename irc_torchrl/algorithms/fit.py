@@ -35,15 +35,18 @@ class FitResult:
 
     def agent(self, i: int) -> dict:
         """One agent's result as plain Python values (the ``summary.json`` entry)."""
+
         def named(row: torch.Tensor) -> dict[str, float]:
-            return {n: float(v) for n, v in zip(self.names, row)}
+            return {n: float(v) for n, v in zip(self.names, row, strict=True)}
 
         return {
             "theta_hat": named(self.theta_hat[i]),
             "ci_low": named(self.intervals.low[i]),
             "ci_high": named(self.intervals.high[i]),
             "std": named(self.intervals.std[i]),
-            "identified": {n: bool(v) for n, v in zip(self.names, self.intervals.identified[i])},
+            "identified": {
+                n: bool(v) for n, v in zip(self.names, self.intervals.identified[i], strict=True)
+            },
             "log_likelihood": float(self.log_likelihood[i]),
             "converged": bool(self.converged[i]),
         }
@@ -73,8 +76,10 @@ def fit_theta(
     generator = torch.Generator().manual_seed(seed)
     k = int(free.sum())
     params = _screen_starts(loss, trials, n_screen, n_starts, generator)
-    rows = trials.unsqueeze(1).expand(n_agents, n_starts, *trials.shape[1:]).reshape(
-        n_agents * n_starts, *trials.shape[1:]
+    rows = (
+        trials.unsqueeze(1)
+        .expand(n_agents, n_starts, *trials.shape[1:])
+        .reshape(n_agents * n_starts, *trials.shape[1:])
     )
 
     def nll(p: torch.Tensor) -> torch.Tensor:
@@ -87,7 +92,9 @@ def fit_theta(
     iterations = 0
     for iterations in range(1, max_iter + 1):
         scale = hessian.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye
-        step = -torch.linalg.solve(hessian + damping * (scale + eye), grad.unsqueeze(-1)).squeeze(-1)
+        step = -torch.linalg.solve(hessian + damping * (scale + eye), grad.unsqueeze(-1)).squeeze(
+            -1
+        )
         step = torch.where(converged.unsqueeze(-1), torch.zeros_like(step), step)
         with torch.no_grad():
             trial_value = nll(params + step)
@@ -134,7 +141,9 @@ def _screen_starts(
     u = space.to_unconstrained(draws)[..., space.free_mask]
     nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
     with torch.no_grad():
-        scores = torch.stack([loss.log_likelihood(loss.theta(u_i), nuisance, trials) for u_i in u], 1)
+        scores = torch.stack(
+            [loss.log_likelihood(loss.theta(u_i), nuisance, trials) for u_i in u], 1
+        )
     best = scores.topk(n_starts, dim=1).indices  # [A, n_starts]
     chosen = u.transpose(0, 1).gather(1, best.unsqueeze(-1).expand(-1, -1, u.shape[-1]))
     return torch.cat([chosen, nuisance.unsqueeze(1).expand(-1, n_starts, -1)], -1).reshape(

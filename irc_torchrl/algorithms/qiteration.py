@@ -73,7 +73,7 @@ class FittedQIteration:
             return phi.double(), self.q.psi(features[..., self.q.belief_dim :]).double()
 
     def add(self, batch: TensorDict) -> None:
-        """Add transitions with ``features``, ``action``, ``reward``, ``next_features``, ``terminated``."""
+        """Add transitions: features, action, reward, next_features and terminated."""
         phi, psi = self._bases(batch["features"])
         next_phi, next_psi = self._bases(batch["next_features"])
         for a in range(self.q.n_actions):
@@ -84,7 +84,10 @@ class FittedQIteration:
             action=batch["action"],
             reward=batch["reward"].reshape(-1).double(),
             alive=(~batch["terminated"].reshape(-1)).double(),
-            phi=phi, psi=psi, next_phi=next_phi, next_psi=next_psi,
+            phi=phi,
+            psi=psi,
+            next_phi=next_phi,
+            next_psi=next_psi,
             batch_size=batch.batch_size,
         )
         self.data = new if self.data is None else torch.cat([self.data, new])
@@ -111,11 +114,12 @@ class FittedQIteration:
 
 def train_factorised_q(
     model: TaskModel,
-    config: QIterationConfig = QIterationConfig(),
+    config: QIterationConfig | None = None,
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
 ) -> FactorisedQ:
     """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)."""
+    config = config if config is not None else QIterationConfig()
     with torch.random.fork_rng():
         torch.manual_seed(seed)  # ε-greedy draws from the global generator
         env = TransformedEnv(

@@ -44,26 +44,33 @@ def recover_agents(
     trials = simulate_agents(model, policy, theta_true, agents.n_trials, task_theta, seed=seed + 1)
     simulated = time.perf_counter()
     loss = InverseRationalLoss(
-        model, BoltzmannActionModel(q_network, agents.temperature), n_agents=agents.n_agents,
+        model,
+        BoltzmannActionModel(q_network, agents.temperature),
+        n_agents=agents.n_agents,
         world=agents.world,
     )
     result = fit_theta(
-        loss, trials, n_starts=fit.n_starts, n_screen=fit.n_screen, max_iter=fit.max_iter,
-        seed=seed + 2, progress=progress,
+        loss,
+        trials,
+        n_starts=fit.n_starts,
+        n_screen=fit.n_screen,
+        max_iter=fit.max_iter,
+        seed=seed + 2,
+        progress=progress,
     )
     summary = score_recovery(space.free_names, space.names, theta_true, result)
-    summary["timings"] = {
-        "simulate_s": simulated - start, "fit_s": time.perf_counter() - simulated
-    }
+    summary["timings"] = {"simulate_s": simulated - start, "fit_s": time.perf_counter() - simulated}
     return trials, summary, result
 
 
-def score_recovery(free: list[str], names: list[str], theta_true: torch.Tensor, result: FitResult) -> dict:
+def score_recovery(
+    free: list[str], names: list[str], theta_true: torch.Tensor, result: FitResult
+) -> dict:
     """Per-agent entries and per-parameter coverage, errors and interval widths."""
     agents = []
     for i in range(theta_true.shape[0]):
         entry = result.agent(i)
-        entry["theta_true"] = {n: float(v) for n, v in zip(names, theta_true[i])}
+        entry["theta_true"] = {n: float(v) for n, v in zip(names, theta_true[i], strict=True)}
         entry["nuisance"] = [float(v) for v in result.nuisance[i]]
         agents.append(entry)
     parameters = {}

@@ -20,11 +20,15 @@ from irc_torchrl.envs.task_env import TaskEnv
 __all__ = ["boltzmann_policy", "simulate_agents", "first_trial_mask"]
 
 
-def boltzmann_policy(model: TaskModel, q_network: torch.nn.Module, temperature: float) -> TensorDictSequential:
+def boltzmann_policy(
+    model: TaskModel, q_network: torch.nn.Module, temperature: float
+) -> TensorDictSequential:
     """A TorchRL policy sampling actions from ``softmax(Q(b, ·, θ) / temperature)``."""
     return TensorDictSequential(
         BeliefFeatures(model),
-        TensorDictModule(lambda f: q_network(f) / temperature, in_keys=["features"], out_keys=["logits"]),
+        TensorDictModule(
+            lambda f: q_network(f) / temperature, in_keys=["features"], out_keys=["logits"]
+        ),
         ProbabilisticActor(
             TensorDictModule(lambda logits: logits, in_keys=["logits"], out_keys=["logits"]),
             in_keys=["logits"],
@@ -42,7 +46,7 @@ def first_trial_mask(done: torch.Tensor) -> torch.Tensor:
 
 def simulate_agents(
     model: TaskModel,
-    policy: TensorDictSequential,
+    policy: TensorDictSequential | None,
     theta: torch.Tensor,
     n_trials: int,
     task_theta: torch.Tensor | None = None,
@@ -51,7 +55,8 @@ def simulate_agents(
     """Run ``n_trials`` trials for each agent θ (``[n_agents, d]``) and return held trials.
 
     Args:
-        policy: a TorchRL policy reading the belief (e.g. :func:`boltzmann_policy`).
+        policy: a TorchRL policy reading the belief (e.g. :func:`boltzmann_policy`);
+            ``None`` acts at random.
         task_theta: the world's θ, ``[d]`` or ``[n_agents, d]``; ``None``: each agent's own.
     """
     space = model.theta_space
@@ -63,8 +68,13 @@ def simulate_agents(
         world = space.validate(task_theta, "task_theta").expand(n_agents, -1)
         world = world.unsqueeze(1).expand(*batch, -1)
     env = TransformedEnv(
-        TaskEnv(model, batch_size=batch, theta=theta.unsqueeze(1).expand(*batch, -1),
-                task_theta=world, seed=seed),
+        TaskEnv(
+            model,
+            batch_size=batch,
+            theta=theta.unsqueeze(1).expand(*batch, -1),
+            task_theta=world,
+            seed=seed,
+        ),
         EKFBelief(model),
     )
     with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):

@@ -23,7 +23,11 @@ TRIAL_KEYS = ("state", "action", "target", "mask", "task_theta")
 def action_in_spec(spec: TensorSpec, action: torch.Tensor) -> torch.Tensor:
     """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous)."""
     if isinstance(spec, Categorical):
-        integral = action == action.round() if action.is_floating_point() else torch.ones_like(action, dtype=torch.bool)
+        integral = (
+            action == action.round()
+            if action.is_floating_point()
+            else torch.ones_like(action, dtype=torch.bool)
+        )
         return integral & (action >= 0) & (action < spec.n)
     low, high = spec.space.low.to(action.device), spec.space.high.to(action.device)
     return ((action >= low) & (action <= high)).all(-1)
@@ -43,14 +47,18 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
     and that ``task_theta`` lies in the θ space.
     """
     if not isinstance(trials, TensorDictBase):
-        raise TypeError(f"trials: expected a TensorDict [n_agents, n_trials, T], got {type(trials).__name__}")
+        raise TypeError(
+            f"trials: expected a TensorDict [n_agents, n_trials, T], got {type(trials).__name__}"
+        )
     missing = [k for k in TRIAL_KEYS if k not in trials.keys()]
     if missing:
         raise KeyError(f"trials: missing field(s) {missing}; held trials need {list(TRIAL_KEYS)}")
     if trials.ndim == 2:
         trials = trials.unsqueeze(0)
     if trials.ndim != 3:
-        raise ValueError(f"trials: expected batch dims [n_agents, n_trials, T], got {list(trials.batch_size)}")
+        raise ValueError(
+            f"trials: expected batch dims [n_agents, n_trials, T], got {list(trials.batch_size)}"
+        )
     continuous = not isinstance(model.action_spec, Categorical)
     expected = {
         "state": (model.state_dim,),
@@ -63,17 +71,23 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
         shape = tuple(trials[key].shape[3:])
         if shape != tail:
             raise ValueError(
-                f"trials: field {key!r} expected shape [n_agents, n_trials, T{''.join(f', {d}' for d in tail)}], "
+                f"trials: field {key!r} expected shape "
+                f"[n_agents, n_trials, T{''.join(f', {d}' for d in tail)}], "
                 f"got {list(trials[key].shape)}"
             )
     mask = trials["mask"]
     if mask.dtype != torch.bool:
         raise TypeError(f"trials: field 'mask' expected dtype bool, got {mask.dtype}")
     if not mask[..., 0].all():
-        raise ValueError(f"trials: field 'mask' marks no step at {_where(~mask[..., :1])}; every trial needs ≥ 1 step")
+        raise ValueError(
+            f"trials: field 'mask' marks no step at {_where(~mask[..., :1])}; "
+            "every trial needs ≥ 1 step"
+        )
     gaps = mask[..., 1:] & ~mask[..., :-1]
     if gaps.any():
-        raise ValueError(f"trials: field 'mask' must mark a prefix of each trial; a gap ends at {_where(gaps)}")
+        raise ValueError(
+            f"trials: field 'mask' must mark a prefix of each trial; a gap ends at {_where(gaps)}"
+        )
     for key in ("state", "target", "action"):
         value = trials[key]
         if value.is_floating_point():
@@ -84,7 +98,7 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
     if bad.any():
         raise ValueError(
             f"trials: field 'action' at {_where(bad)} is {trials['action'][bad][0].tolist()}, "
-            f"outside the task's action set ({model.action_spec.__class__.__name__} {_describe(model.action_spec)})"
+            f"outside the task's action set ({_describe(model.action_spec)})"
         )
     model.theta_space.validate(trials["task_theta"][mask], "trials: field 'task_theta'")
     return trials
@@ -92,5 +106,5 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
 
 def _describe(spec: TensorSpec) -> str:
     if isinstance(spec, Categorical):
-        return f"0..{spec.n - 1}"
-    return f"[{spec.space.low.tolist()}, {spec.space.high.tolist()}]"
+        return f"integers 0..{spec.n - 1}"
+    return f"the box [{spec.space.low.tolist()}, {spec.space.high.tolist()}]"

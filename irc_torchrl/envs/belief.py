@@ -27,7 +27,11 @@ def _symmetrise(cov: torch.Tensor) -> torch.Tensor:
 
 
 def ekf_predict(
-    model: TaskModel, mean: torch.Tensor, cov: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    model: TaskModel,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    action: torch.Tensor,
+    theta: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Propagate the belief through the transition: ``μ' = f(μ, a)``, ``Σ' = F Σ Fᵀ + Q``."""
     jac = model.transition_jacobian(mean, action, theta)
@@ -88,7 +92,9 @@ class EKFBelief(Transform):
         self.model = model
         self.theta_key = theta_key
 
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
         mean, cov = self.model.initial_belief(
             tensordict_reset["state"], tensordict_reset["target"], tensordict_reset[self.theta_key]
         )
@@ -97,7 +103,9 @@ class EKFBelief(Transform):
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        observation = next_tensordict.get("observation", None) if self.model.observation_dim else None
+        observation = (
+            next_tensordict.get("observation", None) if self.model.observation_dim else None
+        )
         mean, cov = ekf_step(
             self.model,
             tensordict[BELIEF_MEAN],
@@ -154,7 +162,9 @@ class BeliefReward(Transform):
 class BeliefFeatures(TensorDictModuleBase):
     """Reads the belief, target, step and θ; writes ``features``, the input of actor and critic."""
 
-    def __init__(self, model: TaskModel, theta_key: str = "theta", out_key: str = "features") -> None:
+    def __init__(
+        self, model: TaskModel, theta_key: str = "theta", out_key: str = "features"
+    ) -> None:
         super().__init__()
         self.model = model
         self.in_keys = [BELIEF_MEAN, BELIEF_COV, "target", "step", theta_key]

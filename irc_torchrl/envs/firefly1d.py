@@ -28,7 +28,9 @@ def firefly1d_theta_space() -> ThetaSpace:
     return ThetaSpace(
         [
             Parameter("g_a", 0.5, 1.5, 1.0, "distance/step", "action gain"),
-            Parameter("log_sigma0", math.log(0.05), 0.0, math.log(0.3), "log distance", "process noise"),
+            Parameter(
+                "log_sigma0", math.log(0.05), 0.0, math.log(0.3), "log distance", "process noise"
+            ),
             Parameter("goal_radius", 0.5, 2.0, 1.0, "distance", "radius rewarded on stopping"),
             Parameter("move_cost", 0.05, 1.0, 0.3, "reward units", "cost of one move"),
         ],
@@ -36,7 +38,9 @@ def firefly1d_theta_space() -> ThetaSpace:
     )
 
 
-def gaussian_interval_probability(mean: torch.Tensor, std: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+def gaussian_interval_probability(
+    mean: torch.Tensor, std: torch.Tensor, radius: torch.Tensor
+) -> torch.Tensor:
     """``P(|x| < radius)`` for ``x ~ N(mean, std²)``, accurate in the tails."""
     std = std.clamp_min(1e-4)
     return torch.special.ndtr((radius - mean) / std) - torch.special.ndtr((-radius - mean) / std)
@@ -49,8 +53,13 @@ class Firefly1DModel(TaskModel):
     observation_dim = 0
     target_dim = 1
 
-    def __init__(self, target_range: float = 12.0, max_steps: int = 30, reward_value: float = 10.0,
-                 theta_space: ThetaSpace | None = None) -> None:
+    def __init__(
+        self,
+        target_range: float = 12.0,
+        max_steps: int = 30,
+        reward_value: float = 10.0,
+        theta_space: ThetaSpace | None = None,
+    ) -> None:
         self.theta_space = theta_space if theta_space is not None else firefly1d_theta_space()
         self.target_range = target_range
         self.max_steps = max_steps
@@ -74,12 +83,19 @@ class Firefly1DModel(TaskModel):
         return state + self._theta(theta, "g_a") * self.move(action).to(state.dtype)
 
     def transition_jacobian(self, state, action, theta):
-        return torch.ones(*torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]), 1, 1,
-                          dtype=state.dtype, device=state.device)
+        return torch.ones(
+            *torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]),
+            1,
+            1,
+            dtype=state.dtype,
+            device=state.device,
+        )
 
     def process_cov(self, state, action, theta):
         var = torch.exp(2 * self._theta(theta, "log_sigma0"))
-        return var.expand(*torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]), 1).unsqueeze(-1)
+        return var.expand(*torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]), 1).unsqueeze(
+            -1
+        )
 
     def stops(self, action, step):
         return (action == STOP).unsqueeze(-1)
@@ -92,11 +108,15 @@ class Firefly1DModel(TaskModel):
     initial_variance = 1e-4
 
     def initial_belief(self, state, target, theta):
-        cov = torch.full((*state.shape, 1), self.initial_variance, dtype=state.dtype, device=state.device)
+        cov = torch.full(
+            (*state.shape, 1), self.initial_variance, dtype=state.dtype, device=state.device
+        )
         return state.clone(), cov
 
     def belief_reward(self, mean, cov, target, action, stop, theta):
-        p = gaussian_interval_probability(mean - target, cov[..., 0].sqrt(), self._theta(theta, "goal_radius"))
+        p = gaussian_interval_probability(
+            mean - target, cov[..., 0].sqrt(), self._theta(theta, "goal_radius")
+        )
         return torch.where(stop, self.reward_value * p, -self._theta(theta, "move_cost"))
 
     belief_feature_dim = 5
@@ -116,7 +136,20 @@ class Firefly1DModel(TaskModel):
 class Firefly1DEnv(TaskEnv):
     """:class:`TaskEnv` over :class:`Firefly1DModel` (see there for the task)."""
 
-    def __init__(self, batch_size=(), theta=None, task_theta=None, device=None, seed=None,
-                 model: Firefly1DModel | None = None) -> None:
-        super().__init__(model if model is not None else Firefly1DModel(), batch_size, theta,
-                         task_theta, device, seed)
+    def __init__(
+        self,
+        batch_size=(),
+        theta=None,
+        task_theta=None,
+        device=None,
+        seed=None,
+        model: Firefly1DModel | None = None,
+    ) -> None:
+        super().__init__(
+            model if model is not None else Firefly1DModel(),
+            batch_size,
+            theta,
+            task_theta,
+            device,
+            seed,
+        )

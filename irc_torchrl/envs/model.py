@@ -45,11 +45,15 @@ class TaskModel(abc.ABC):
         """Draw ``(state, target)`` for a batch of trials with task parameters ``theta``."""
 
     @abc.abstractmethod
-    def transition(self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    def transition(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         """The noise-free next state ``f(s, a, θ)``."""
 
     @abc.abstractmethod
-    def process_cov(self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    def process_cov(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         """Covariance ``[*B, ds, ds]`` of the process noise added to ``f(s, a, θ)``."""
 
     def observe(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -126,6 +130,8 @@ def _batched_jacobian(fn, state: torch.Tensor, *args: torch.Tensor) -> torch.Ten
     """Jacobian of ``fn`` with respect to its first argument, for every batch element."""
     batch = state.shape[:-1]
     flat = [state.reshape(-1, state.shape[-1])]
-    flat += [a.expand(*batch, *a.shape[len(batch):]).reshape(-1, *a.shape[len(batch):]) for a in args]
+    flat += [
+        a.expand(*batch, *a.shape[len(batch) :]).reshape(-1, *a.shape[len(batch) :]) for a in args
+    ]
     jac = torch.func.vmap(torch.func.jacrev(fn, argnums=0))(*flat)
     return jac.reshape(*batch, *jac.shape[1:])

@@ -15,7 +15,9 @@ __all__ = ["RandomBasis", "FactorisedQ"]
 class RandomBasis(nn.Module):
     """A fixed random one-layer network ``tanh(x W + c)``, plus a constant feature."""
 
-    def __init__(self, in_features: int, n_basis: int, scale: float, generator: torch.Generator) -> None:
+    def __init__(
+        self, in_features: int, n_basis: int, scale: float, generator: torch.Generator
+    ) -> None:
         super().__init__()
         weight = scale * torch.randn(in_features, n_basis - 1, generator=generator)
         bias = scale * (2 * torch.rand(n_basis - 1, generator=generator) - 1)

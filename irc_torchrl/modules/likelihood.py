@@ -28,7 +28,9 @@ class BoltzmannActionModel(nn.Module):
         """Action logits ``Q / τ``, ``[*B, n_actions]``; ``nuisance`` broadcasts against ``*B``."""
         return self.q_network(features) / nuisance[..., :1].exp()
 
-    def log_prob(self, features: torch.Tensor, action: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
+    def log_prob(
+        self, features: torch.Tensor, action: torch.Tensor, nuisance: torch.Tensor
+    ) -> torch.Tensor:
         """``log p(action)`` for integer actions ``[*B]``."""
         logp = torch.log_softmax(self.logits(features, nuisance), -1)
         return logp.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)

@@ -64,7 +64,9 @@ def fisher_intervals(
     k = int(free.sum())
     eigval, eigvec = torch.linalg.eigh(hessian)
     positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
-    inv_eig = torch.where(positive, 1 / eigval.clamp_min(1e-300), torch.full_like(eigval, torch.inf))
+    inv_eig = torch.where(
+        positive, 1 / eigval.clamp_min(1e-300), torch.full_like(eigval, torch.inf)
+    )
     cov_u = (eigvec * inv_eig.nan_to_num(posinf=1e12).unsqueeze(-2)) @ eigvec.transpose(-1, -2)
     var_u = cov_u.diagonal(dim1=-2, dim2=-1)[:, :k]
     degenerate = ~positive.all(-1, keepdim=True)
@@ -82,7 +84,9 @@ def fisher_intervals(
     normalised_sd = 2 * std / (space.high(theta_hat.dtype) - space.low(theta_hat.dtype))
     identified = (normalised_sd < 0.5) & ~degenerate
     covariance = cov_u[:, :k, :k] * slope.unsqueeze(-1) * slope.unsqueeze(-2)
-    return Intervals(std=std, low=ci_low, high=ci_high, identified=identified, covariance=covariance)
+    return Intervals(
+        std=std, low=ci_low, high=ci_high, identified=identified, covariance=covariance
+    )
 
 
 def _embed(space: ThetaSpace, u_free: torch.Tensor, n: int) -> torch.Tensor:

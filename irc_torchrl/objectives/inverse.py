@@ -68,7 +68,9 @@ class InverseRationalLoss(LossModule):
         free = self.theta_space.free_mask
         start = self.theta_space.to_unconstrained(self.theta_space.default(torch.float64))[free]
         self.theta_free = nn.Parameter(start.expand(n_agents, -1).clone())
-        self.nuisance = nn.Parameter(action_model.nuisance_init.double().expand(n_agents, -1).clone())
+        self.nuisance = nn.Parameter(
+            action_model.nuisance_init.double().expand(n_agents, -1).clone()
+        )
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: the objective is a likelihood, not a TD target."""
@@ -104,9 +106,13 @@ class InverseRationalLoss(LossModule):
             means, covs, target.unsqueeze(2), steps, theta_b.unsqueeze(2)
         )
         # score only the recorded steps: trials end at different times
-        agent = torch.arange(state.shape[0], device=state.device).view(-1, 1, 1).expand_as(mask)[mask]
+        agent = (
+            torch.arange(state.shape[0], device=state.device).view(-1, 1, 1).expand_as(mask)[mask]
+        )
         logp = self.action_model.log_prob(features[mask], action[mask], nuisance[agent])
-        total = torch.zeros(state.shape[0], dtype=dtype, device=state.device).index_add(0, agent, logp)
+        total = torch.zeros(state.shape[0], dtype=dtype, device=state.device).index_add(
+            0, agent, logp
+        )
         if self.world == "shared":
             total = total + self._transition_log_likelihood(theta_b, state, action, mask)
         return total
@@ -124,7 +130,9 @@ class InverseRationalLoss(LossModule):
         means, covs = [mean], [cov]
         for t in range(state.shape[2] - 1):
             observation = (
-                self.model.observe(state[:, :, t + 1], theta_b) if self.model.observation_dim else None
+                self.model.observe(state[:, :, t + 1], theta_b)
+                if self.model.observation_dim
+                else None
             )
             mean, cov = ekf_step(self.model, mean, cov, action[:, :, t], observation, theta_b)
             means.append(mean)

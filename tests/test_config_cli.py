@@ -1,0 +1,92 @@
+"""The configuration system and the ``irc`` command."""
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from irc_torchrl.cli import build_parser, main
+from irc_torchrl.config import Firefly1DConfig, config_to_dict, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "q_iteration.n_envs=64",
+    "q_iteration.rounds=1",
+    "q_iteration.steps_per_round=30",
+    "q_iteration.sweeps=10",
+    "agents.n_agents=3",
+    "agents.n_trials=20",
+    "fit.n_screen=4",
+    "fit.max_iter=8",
+]
+
+
+def test_shipped_yaml_equals_the_embedded_default():
+    assert load_config(ROOT / "configs" / "firefly1d.yaml") == Firefly1DConfig()
+    shipped = yaml.safe_load((ROOT / "configs" / "firefly1d.yaml").read_text())
+    assert shipped == config_to_dict(Firefly1DConfig())
+
+
+def test_overrides_reach_nested_fields_with_types():
+    config = load_config(overrides=["agents.n_agents=7", "q_iteration.ridge=1e-3", "seed=4"])
+    assert (config.agents.n_agents, config.q_iteration.ridge, config.seed) == (7, 1e-3, 4)
+    assert isinstance(config.q_iteration.ridge, float)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("agents.n_agent=3", "unknown key 'agents.n_agent'; valid keys: .*agents.n_agents"),
+        ("nonsense=1", "unknown key 'nonsense'"),
+        ("agents.n_agents=many", "agents.n_agents='many' is not a valid int"),
+        ("agents.world=elsewhere", "agents.world must be 'known' or 'shared'"),
+        ("seed", "must look like key=value"),
+    ],
+)
+def test_bad_overrides_are_clear_errors(override, message):
+    with pytest.raises((KeyError, ValueError), match=message):
+        load_config(overrides=[override])
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no file at"):
+        load_config(tmp_path / "absent.yaml")
+
+
+def test_help_lists_every_subcommand_with_a_purpose(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "demo train, simulate agents and recover their θ end to end (the main job)" in text
+
+
+def test_unknown_key_on_the_command_line_exits_2(capsys, tmp_path):
+    assert main(["demo", "--out", str(tmp_path), "--quiet", "fit.max_iters=3"]) == 2
+    assert "valid keys" in capsys.readouterr().err
+    assert not (tmp_path / "summary.json").exists()
+
+
+def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
+    runs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        assert main(["demo", "--out", str(out), "--quiet", "--seed", "3", *TINY]) == 0
+        runs.append(json.loads((out / "summary.json").read_text()))
+    summary = runs[0]
+    assert (summary["task"], summary["seed"]) == ("firefly1d", 3)
+    assert len(summary["agents"]) == 3
+    agent = summary["agents"][0]
+    for key in ("theta_true", "theta_hat", "ci_low", "ci_high"):
+        assert set(agent[key]) == {"g_a", "log_sigma0", "goal_radius", "move_cost"}
+    assert agent["ci_low"]["g_a"] <= agent["theta_hat"]["g_a"] <= agent["ci_high"]["g_a"]
+    assert set(summary["parameters"]) == {"g_a", "log_sigma0"}
+    for stats in summary["parameters"].values():
+        assert 0 <= stats["coverage"] <= 1 and stats["median_ci_width"] > 0
+    assert set(summary["timings"]) == {"train_s", "simulate_s", "fit_s"}
+    strip = lambda s: {k: v for k, v in s.items() if k != "timings"}  # noqa: E731
+    assert strip(runs[0]) == strip(runs[1])
+    written = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
+    assert written["seed"] == 3 and written["agents"]["n_agents"] == 3
+    for figure in ("q_function.png", "recovery.png", "dp_comparison.png"):
+        assert (tmp_path / "a" / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -1,0 +1,111 @@
+"""Held trials: every malformed input is refused before any work, with a message naming it."""
+
+import pytest
+import torch
+
+from irc_torchrl.algorithms.simulate import first_trial_mask, simulate_agents
+from irc_torchrl.data.files import atomic_path, write_json
+from irc_torchrl.data.trajectories import validate_trials
+from irc_torchrl.envs import Firefly1DModel
+
+
+@pytest.fixture(scope="module")
+def model():
+    return Firefly1DModel()
+
+
+@pytest.fixture(scope="module")
+def trials(model):
+    theta = model.theta_space.sample((2,), generator=torch.Generator().manual_seed(0))
+    return simulate_agents(model, None, theta, 6, model.theta_space.default(), seed=0)
+
+
+def test_valid_trials_pass_and_one_agent_gains_an_agent_dim(model, trials):
+    assert validate_trials(trials, model).batch_size == trials.batch_size
+    assert validate_trials(trials[0], model).batch_size == (1, *trials.shape[1:])
+
+
+def test_first_trial_mask_keeps_steps_up_to_the_first_done():
+    done = torch.tensor([[0, 0, 1, 0, 1], [1, 0, 0, 0, 0], [0, 0, 0, 0, 0]], dtype=torch.bool)
+    expected = torch.tensor([[1, 1, 1, 0, 0], [1, 0, 0, 0, 0], [1, 1, 1, 1, 1]], dtype=torch.bool)
+    assert torch.equal(first_trial_mask(done), expected)
+
+
+def _nan_state(t):
+    t["state"][1, 2, 0, 0] = float("nan")
+
+
+def _inf_target(t):
+    t["target"][0, 0, 0, 0] = float("inf")
+
+
+def _bad_action(t):
+    t["action"][0, 3, 0] = 3
+
+
+def _negative_action(t):
+    t["action"][1, 0, 0] = -1
+
+
+def _mask_gap(t):
+    t["mask"][0, 1, :] = False
+    t["mask"][0, 1, 0] = True
+    t["mask"][0, 1, 2] = True
+
+
+def _empty_trial(t):
+    t["mask"][1, 4, :] = False
+
+
+def _theta_outside(t):
+    t["task_theta"][0, 0, :, 0] = 9.0
+
+
+def _task_theta_nan(t):
+    t["task_theta"][0, 0, 0, 1] = float("nan")
+
+
+@pytest.mark.parametrize(
+    "corrupt, field",
+    [
+        (_nan_state, "'state' has NaN or inf at agent 1, trial 2, step 0"),
+        (_inf_target, "'target' has NaN or inf at agent 0, trial 0, step 0"),
+        (_bad_action, "'action' at agent 0, trial 3, step 0 is 3"),
+        (_negative_action, "'action' at agent 1, trial 0, step 0 is -1"),
+        (_mask_gap, "a gap ends at agent 0, trial 1, step 1"),
+        (_empty_trial, "marks no step at agent 1, trial 4"),
+        (_theta_outside, "g_a=9 is outside its space"),
+        (_task_theta_nan, "log_sigma0=nan is outside its space"),
+    ],
+)
+def test_malformed_values_name_the_field_and_place(model, trials, corrupt, field):
+    bad = trials.clone()
+    corrupt(bad)
+    with pytest.raises((ValueError, TypeError), match=field.replace("(", r"\(")):
+        validate_trials(bad, model)
+
+
+def test_missing_field_lists_the_required_ones(model, trials):
+    with pytest.raises(KeyError, match="missing field.*'mask'"):
+        validate_trials(trials.exclude("mask"), model)
+
+
+def test_wrong_shapes_and_dtypes(model, trials):
+    with pytest.raises(ValueError, match="field 'state' expected shape"):
+        validate_trials(trials.clone().set("state", trials["state"].repeat(1, 1, 1, 2)), model)
+    with pytest.raises(TypeError, match="'mask' expected dtype bool"):
+        validate_trials(trials.clone().set("mask", trials["mask"].float()), model)
+    with pytest.raises(ValueError, match=r"batch dims \[n_agents, n_trials, T\]"):
+        validate_trials(trials[0, 0], model)
+    with pytest.raises(TypeError, match="expected a TensorDict"):
+        validate_trials({"state": trials["state"]}, model)
+
+
+def test_atomic_write_leaves_nothing_when_the_writer_fails(tmp_path):
+    target = tmp_path / "summary.json"
+    write_json(target, {"a": 1})
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("interrupted")
+    assert target.read_text() == '{\n  "a": 1\n}\n'
+    assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
