@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="train, simulate agents and recover their θ end to end (the main job)",
         description=(
             "Learn one Q over the θ prior (Algorithm 1), check it against exact DP, simulate "
-            "agents with θ* from the prior, fit each agent's θ with 95%% intervals (Algorithm 2) "
+            "agents with θ* from the prior, fit each agent's θ with 95% intervals (Algorithm 2) "
             "and report coverage. Writes config.yaml, summary.json and figures into --out."
         ),
     )

@@ -20,6 +20,9 @@ from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 __all__ = ["FitResult", "fit_theta"]
 
+#: the largest move of one Newton step in any unconstrained coordinate
+MAX_STEP = 1.5
+
 
 @dataclass
 class FitResult:
@@ -92,9 +95,10 @@ def fit_theta(
     iterations = 0
     for iterations in range(1, max_iter + 1):
         scale = hessian.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye
-        step = -torch.linalg.solve(hessian + damping * (scale + eye), grad.unsqueeze(-1)).squeeze(
-            -1
-        )
+        step = -torch.linalg.solve(hessian + damping * (scale + eye), grad.unsqueeze(-1))
+        # a trust region in unconstrained units: one long step can land where the logit
+        # saturates, the gradient vanishes and the fit would stall far from θ̂
+        step = step.squeeze(-1) * (MAX_STEP / step.abs().amax((-2, -1)).unsqueeze(-1)).clamp(max=1)
         step = torch.where(converged.unsqueeze(-1), torch.zeros_like(step), step)
         with torch.no_grad():
             trial_value = nll(params + step)
@@ -136,16 +140,17 @@ def _screen_starts(
     """The ``n_starts`` most likely of ``n_screen`` prior draws per agent, ``[A·n_starts, p]``."""
     space = loss.theta_space
     n_agents = trials.shape[0]
-    draws = space.sample((n_screen, n_agents), generator=generator, dtype=torch.float64)
-    draws[0] = space.default(torch.float64)
+    # agent-major draws: an agent's candidates do not depend on how many agents are fitted
+    draws = space.sample((n_agents, n_screen), generator=generator, dtype=torch.float64)
+    draws[:, 0] = space.default(torch.float64)
     u = space.to_unconstrained(draws)[..., space.free_mask]
     nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
     with torch.no_grad():
         scores = torch.stack(
-            [loss.log_likelihood(loss.theta(u_i), nuisance, trials) for u_i in u], 1
+            [loss.log_likelihood(loss.theta(u[:, s]), nuisance, trials) for s in range(n_screen)], 1
         )
     best = scores.topk(n_starts, dim=1).indices  # [A, n_starts]
-    chosen = u.transpose(0, 1).gather(1, best.unsqueeze(-1).expand(-1, -1, u.shape[-1]))
+    chosen = u.gather(1, best.unsqueeze(-1).expand(-1, -1, u.shape[-1]))
     return torch.cat([chosen, nuisance.unsqueeze(1).expand(-1, n_starts, -1)], -1).reshape(
         n_agents * n_starts, -1
     )

@@ -52,6 +52,13 @@ class Firefly1DModel(TaskModel):
     state_dim = 1
     observation_dim = 0
     target_dim = 1
+    #: one step is one time unit: recordings are read with a clock of one step per second
+    dt = 1.0
+    state_names = ("x",)
+    state_units = ("distance",)
+    #: the action is an integer index: 0 = left, 1 = stop, 2 = right
+    action_names = ("action",)
+    target_names = ("target_x",)
 
     def __init__(
         self,
@@ -136,20 +143,4 @@ class Firefly1DModel(TaskModel):
 class Firefly1DEnv(TaskEnv):
     """:class:`TaskEnv` over :class:`Firefly1DModel` (see there for the task)."""
 
-    def __init__(
-        self,
-        batch_size=(),
-        theta=None,
-        task_theta=None,
-        device=None,
-        seed=None,
-        model: Firefly1DModel | None = None,
-    ) -> None:
-        super().__init__(
-            model if model is not None else Firefly1DModel(),
-            batch_size,
-            theta,
-            task_theta,
-            device,
-            seed,
-        )
+    model_class = Firefly1DModel

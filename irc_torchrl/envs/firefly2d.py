@@ -141,6 +141,12 @@ class Firefly2DModel(TaskModel):
     observation_dim = 2
     target_dim = 2
     dt = 0.1
+    #: position (distance units), heading (rad), forward (distance/s) and angular (rad/s) velocity
+    state_names = ("x", "y", "heading", "v", "w")
+    state_units = ("distance", "distance", "rad", "distance/s", "rad/s")
+    #: dimensionless controls in [-1, 1], scaled by the gains ``g_v``, ``g_w``
+    action_names = ("a_v", "a_w")
+    target_names = ("target_x", "target_y")
 
     def __init__(
         self,
@@ -290,20 +296,4 @@ class Firefly2DModel(TaskModel):
 class Firefly2DEnv(TaskEnv):
     """:class:`TaskEnv` over :class:`Firefly2DModel` (see there for the task)."""
 
-    def __init__(
-        self,
-        batch_size=(),
-        theta=None,
-        task_theta=None,
-        device=None,
-        seed=None,
-        model: Firefly2DModel | None = None,
-    ) -> None:
-        super().__init__(
-            model if model is not None else Firefly2DModel(),
-            batch_size,
-            theta,
-            task_theta,
-            device,
-            seed,
-        )
+    model_class = Firefly2DModel

@@ -36,6 +36,15 @@ class TaskModel(abc.ABC):
     max_steps: int
     #: the action spec of one environment (no batch dimensions)
     action_spec: TensorSpec
+    #: seconds per step (a recording is resampled to this grid); tasks without a clock use 1.0
+    dt: float = 1.0
+    #: names of the state's components, in order, and the unit of each (the trajectory schema)
+    state_names: tuple[str, ...]
+    state_units: tuple[str, ...]
+    #: names of the action's components (one name for a discrete action's integer index)
+    action_names: tuple[str, ...]
+    #: names of the target's components, in the state's distance units
+    target_names: tuple[str, ...]
 
     # --- world ---------------------------------------------------------------------------
     @abc.abstractmethod

@@ -23,7 +23,7 @@ class TaskEnv(EnvBase):
     unless given. The agent's belief is added by :class:`~irc_torchrl.envs.belief.EKFBelief`.
 
     Args:
-        model: the task.
+        model: the task; ``None`` builds the subclass's ``model_class`` with its defaults.
         batch_size: leading batch dimensions (``()`` for one environment).
         theta: agent θ for every trial, ``[*batch_size, d]`` or ``[d]``; ``None`` draws from
             the prior.
@@ -33,10 +33,12 @@ class TaskEnv(EnvBase):
     """
 
     batch_locked = True
+    #: the task a subclass stands for, built when no model is given
+    model_class: type[TaskModel] | None = None
 
     def __init__(
         self,
-        model: TaskModel,
+        model: TaskModel | None = None,
         batch_size: Sequence[int] | torch.Size = (),
         theta: torch.Tensor | None = None,
         task_theta: torch.Tensor | None = None,
@@ -44,6 +46,10 @@ class TaskEnv(EnvBase):
         seed: int | None = None,
     ) -> None:
         super().__init__(device=device, batch_size=torch.Size(batch_size))
+        if model is None:
+            if self.model_class is None:
+                raise TypeError("model: TaskEnv needs a TaskModel (or use a task's env subclass)")
+            model = self.model_class()
         self.model = model
         self.theta = None if theta is None else self._check_theta(theta, "theta")
         self.task_theta = (

@@ -153,6 +153,11 @@ class InverseRationalLoss(LossModule):
         return torch.where(valid, logp, torch.zeros_like(logp)).sum((1, 2))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        if tensordict.ndim != 3 or tensordict.shape[0] != self.theta_free.shape[0]:
+            raise ValueError(
+                f"trials: expected batch dims [{self.theta_free.shape[0]} agents, n_trials, T], "
+                f"got {list(tensordict.batch_size)}"
+            )
         theta = self.theta(self.theta_free)
         log_likelihood = self.log_likelihood(theta, self.nuisance, tensordict)
         return TensorDict(

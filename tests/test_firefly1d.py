@@ -1,0 +1,205 @@
+"""The 1D firefly task as a TorchRL environment, its belief filter and belief reward.
+
+The paper's 1D belief: with no observations, ``μ_{t+1} = μ_t + g_a·a`` and
+``σ²_{t+1} = σ²_t + σ₀²`` under the AGENT's θ, while the world moves with the TASK's θ.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy import stats
+from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import check_env_specs, step_mdp
+
+from irc_torchrl.envs import BeliefReward, EKFBelief, Firefly1DEnv, Firefly1DModel
+from irc_torchrl.envs.firefly1d import LEFT, RIGHT, STOP
+
+MODEL = Firefly1DModel()
+SPACE = MODEL.theta_space
+
+
+def theta_of(g_a: float, sigma0: float) -> torch.Tensor:
+    return SPACE.from_dict({"g_a": g_a, "log_sigma0": math.log(sigma0)})
+
+
+def belief_env(batch=(), **kwargs) -> TransformedEnv:
+    return TransformedEnv(
+        Firefly1DEnv(batch_size=batch, **kwargs), Compose(EKFBelief(MODEL), BeliefReward(MODEL))
+    )
+
+
+def run(env, actions: torch.Tensor) -> list[TensorDict]:
+    """Step ``env`` through ``actions [T, *B]`` from a reset; the list of root tensordicts."""
+    td = env.reset()
+    out = [td.clone()]
+    for a in actions:
+        td.set("action", a)
+        td = env.step(td)
+        out.append(td.clone())
+        td = step_mdp(td)
+    return out
+
+
+@pytest.mark.parametrize("batch", [(), (8,)])
+@pytest.mark.parametrize("with_belief", [False, True])
+def test_check_env_specs(batch, with_belief):
+    env = belief_env(batch, seed=1) if with_belief else Firefly1DEnv(batch_size=batch, seed=1)
+    check_env_specs(env, seed=0)
+    td = env.reset()
+    assert td["theta"].shape == (*batch, SPACE.dim)
+    assert td["state"].shape == (*batch, 1) and td["target"].shape == (*batch, 1)
+    if with_belief:
+        assert td["belief", "mean"].shape == (*batch, 1)
+        assert td["belief", "cov"].shape == (*batch, 1, 1)
+
+
+def test_belief_follows_agent_theta_and_world_follows_task_theta():
+    """Belief: μ_t = μ₀ + g_a(agent)·Σ moves and σ²_t = 1e-4 + t·σ₀(agent)² exactly.
+
+    World: state increments for 'right' are task g_a + N(0, task σ₀²). With 4000 envs and a
+    fixed seed, the mean increment must be within 4 standard errors of 0.6 and the sample
+    standard deviation within 5% of the task σ₀ = 0.5 (its relative SE is ~1.1%).
+    """
+    agent, task = theta_of(1.4, 0.1), theta_of(0.6, 0.5)
+    n, steps = 4000, 6
+    env = belief_env((n,), theta=agent, task_theta=task, seed=7)
+    g = torch.Generator().manual_seed(0)
+    moves = torch.where(torch.rand(steps, n, generator=g) < 0.5, LEFT, RIGHT)
+    moves[:, :5] = RIGHT  # a few envs only ever go right
+    tds = run(env, moves)
+    mean0 = tds[0]["belief", "mean"]
+    assert torch.equal(mean0, tds[0]["state"])  # the agent knows where it starts
+    torch.testing.assert_close(tds[0]["belief", "cov"], torch.full((n, 1, 1), 1e-4))
+    cum = torch.zeros(n, 1)
+    for t in range(1, steps + 1):
+        cum += (moves[t - 1] - STOP).unsqueeze(-1).float()
+        nxt = tds[t]["next"]
+        torch.testing.assert_close(nxt["belief", "mean"], mean0 + 1.4 * cum, atol=1e-5, rtol=0)
+        torch.testing.assert_close(
+            nxt["belief", "cov"], torch.full((n, 1, 1), 1e-4 + t * 0.1**2), atol=1e-6, rtol=1e-5
+        )
+        assert torch.equal(nxt["theta"], agent.expand(n, -1))
+        assert torch.equal(nxt["task_theta"], task.expand(n, -1))
+    # the world: increments of the state over one move, divided by the move's sign
+    states = torch.stack([tds[0]["state"]] + [td["next", "state"] for td in tds[1:]])
+    sign = (moves - STOP).unsqueeze(-1).float()
+    increments = ((states[1:] - states[:-1]) * sign).flatten()
+    se = 0.5 / math.sqrt(increments.numel())
+    assert abs(increments.mean().item() - 0.6) < 4 * se
+    assert abs(increments.std().item() / 0.5 - 1) < 0.05
+    # the belief drifted far from the world: the agent's gain is wrong
+    assert ((tds[-1]["next", "belief", "mean"] - tds[-1]["next", "state"]).abs().mean() > 1.0)
+
+
+def test_belief_reward_stop_and_move():
+    """On stop the reward is 10·P(|x − target| < r) under N(μ, σ²); a move pays −move_cost."""
+    env = belief_env((64,), theta=theta_of(1.0, 0.6), seed=3)
+    actions = torch.full((6, 64), RIGHT)
+    actions[5] = STOP
+    tds = run(env, actions)
+    for td in tds[1:6]:
+        torch.testing.assert_close(td["next", "reward"], torch.full((64, 1), -0.3))
+    last = tds[6]
+    mean, var = last["belief", "mean"].squeeze(-1), last["belief", "cov"].reshape(-1)
+    target, radius = last["target"].squeeze(-1), 1.0
+    sd = var.sqrt().double().numpy()
+    d = (mean - target).double().numpy()
+    expected = 10 * (stats.norm.cdf((radius - d) / sd) - stats.norm.cdf((-radius - d) / sd))
+    torch.testing.assert_close(last["next", "reward"].squeeze(-1).double(),
+                               torch.from_numpy(expected), atol=1e-5, rtol=1e-4)
+    assert last["next", "done"].all() and last["next", "terminated"].all()
+    assert not last["next", "truncated"].any()
+    # the world's own reward (no BeliefReward) is 10 · 1{|x − target| < r}
+    world = Firefly1DEnv(batch_size=(64,), theta=theta_of(1.0, 0.6), seed=3)
+    wtds = run(world, actions)
+    inside = ((wtds[6]["state"] - wtds[6]["target"]).abs() < 1.0).float() * 10
+    torch.testing.assert_close(wtds[6]["next", "reward"], inside)
+
+
+def test_timeout_truncates():
+    model = Firefly1DModel(max_steps=3)
+    env = Firefly1DEnv(batch_size=(2,), model=model, theta=SPACE.default())
+    tds = run(env, torch.full((3, 2), RIGHT))
+    assert not tds[2]["next", "done"].any()
+    assert tds[3]["next", "done"].all() and tds[3]["next", "truncated"].all()
+
+
+def test_seeding():
+    def rollout(seed):
+        env = belief_env((16,), seed=seed)
+        torch.manual_seed(0)  # the random policy uses the global generator
+        return env.rollout(40, break_when_any_done=False)
+
+    a, b, c = rollout(5), rollout(5), rollout(6)
+    assert (a == b).all()
+    assert not torch.equal(a["target"], c["target"])
+    assert not torch.equal(a["theta"], c["theta"])
+    env = belief_env((16,))
+    env.set_seed(5)
+    torch.manual_seed(0)
+    assert (env.rollout(40, break_when_any_done=False) == a).all()
+
+
+def test_theta_held_across_auto_resets_or_resampled():
+    held = theta_of(0.7, 0.2)
+    env = belief_env((32,), theta=held, seed=0)
+    torch.manual_seed(0)
+    r = env.rollout(60, break_when_any_done=False)
+    assert r["next", "done"].sum() > 32  # many trials ended and were auto-reset
+    assert torch.equal(r["theta"], held.expand(32, 60, -1))
+    assert torch.equal(r["task_theta"], held.expand(32, 60, -1))
+
+    free = belief_env((32,), seed=0)
+    torch.manual_seed(0)
+    r = free.rollout(60, break_when_any_done=False)
+    theta = r["theta"]
+    assert (theta >= SPACE.low()).all() and (theta <= SPACE.high()).all()
+    assert torch.equal(r["task_theta"], theta)  # task θ defaults to the agent's
+    assert (theta[..., 2] == 1.0).all() and (theta[..., 3] == 0.3).all()  # fixed parameters
+    # θ is constant within a trial and changes after a reset
+    done = r["next", "done"][..., 0]
+    same_next = (theta[:, 1:] == theta[:, :-1]).all(-1)
+    assert same_next[~done[:, :-1]].all()
+    assert not same_next[done[:, :-1]].any()
+    distinct = torch.unique(theta[..., 0]).numel()
+    assert distinct > 32 + 10
+
+
+def test_reset_kwargs_through_transformed_env():
+    env = belief_env((4,), seed=0)
+    agent, task = theta_of(1.3, 0.05), theta_of(0.8, 0.9)
+    td = env.reset(theta=agent, task_theta=task)
+    assert torch.equal(td["theta"], agent.expand(4, -1))
+    assert torch.equal(td["task_theta"], task.expand(4, -1))
+    td.set("action", torch.full((4,), RIGHT))
+    nxt = env.step(td)["next"]
+    torch.testing.assert_close(nxt["belief", "mean"], td["belief", "mean"] + 1.3)
+    torch.testing.assert_close(nxt["belief", "cov"], torch.full((4, 1, 1), 1e-4 + 0.05**2))
+    # one reset only: the next reset draws again
+    assert not torch.equal(env.reset()["theta"], agent.expand(4, -1))
+
+
+def test_bad_inputs():
+    bad = SPACE.default().clone()
+    bad[0] = 3.0
+    with pytest.raises(ValueError, match=r"theta: g_a=3"):
+        Firefly1DEnv(theta=bad)
+    with pytest.raises(ValueError, match=r"task_theta: g_a=3"):
+        Firefly1DEnv(task_theta=bad)
+    with pytest.raises(ValueError, match="theta"):
+        Firefly1DEnv(theta=torch.ones(3))
+    with pytest.raises(ValueError, match="task_theta"):
+        Firefly1DEnv(batch_size=(4,), task_theta=SPACE.default().expand(3, -1))
+    env = belief_env((2,))
+    with pytest.raises(ValueError, match="theta: g_a=3"):
+        env.reset(theta=bad)
+    with pytest.raises(ValueError, match="task_theta"):
+        env.reset(task_theta=torch.ones(5))
+    td = env.reset()
+    td.set("action", torch.tensor([5, 1]))
+    with pytest.raises(ValueError, match="action"):
+        env.step(td)
