@@ -11,7 +11,7 @@ import math
 import torch
 from torch import nn
 
-__all__ = ["BoltzmannActionModel"]
+__all__ = ["BoltzmannActionModel", "CensoredGaussianActionModel"]
 
 
 class BoltzmannActionModel(nn.Module):
@@ -34,3 +34,51 @@ class BoltzmannActionModel(nn.Module):
         """``log p(action)`` for integer actions ``[*B]``."""
         logp = torch.log_softmax(self.logits(features, nuisance), -1)
         return logp.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+
+
+class CensoredGaussianActionModel(nn.Module):
+    """Continuous actions: the actor's output plus Gaussian motor noise, clipped to the bounds.
+
+    A recorded action strictly inside the bounds contributes the Gaussian density; one at a
+    bound contributes the probability of the noise carrying it past the bound (a censored
+    likelihood), since clipping puts a point mass there. The nuisance is the log motor-noise
+    standard deviation per action dimension.
+
+    Args:
+        actor: maps belief features ``[*B, df]`` to the noise-free action ``[*B, da]``.
+        low, high: the action bounds, ``[da]``.
+        motor_noise: the initial motor-noise standard deviation.
+        atol: how close to a bound a recorded action counts as clipped.
+    """
+
+    def __init__(
+        self,
+        actor: nn.Module,
+        low: torch.Tensor,
+        high: torch.Tensor,
+        motor_noise: float = 0.1,
+        atol: float = 1e-6,
+    ) -> None:
+        super().__init__()
+        self.actor = actor.requires_grad_(False)
+        self.register_buffer("low", torch.as_tensor(low, dtype=torch.float64))
+        self.register_buffer("high", torch.as_tensor(high, dtype=torch.float64))
+        self.atol = atol
+        da = self.low.numel()
+        self.nuisance_names = tuple(f"log_motor_noise_{i}" for i in range(da))
+        self.nuisance_init = torch.full((da,), math.log(motor_noise))
+
+    def log_prob(
+        self, features: torch.Tensor, action: torch.Tensor, nuisance: torch.Tensor
+    ) -> torch.Tensor:
+        """``log p(action)`` summed over action dimensions, ``[*B]``."""
+        mean = self.actor(features).to(features.dtype)
+        std = nuisance.exp()
+        low, high = self.low.to(features.dtype), self.high.to(features.dtype)
+        z = (action - mean) / std
+        density = -0.5 * z**2 - std.log() - 0.5 * math.log(2 * math.pi)
+        below = torch.special.log_ndtr((low - mean) / std)
+        above = torch.special.log_ndtr((mean - high) / std)
+        logp = torch.where(action <= low + self.atol, below, density)
+        logp = torch.where(action >= high - self.atol, above, logp)
+        return logp.sum(-1)

@@ -1,0 +1,84 @@
+"""Action likelihood models: proper distributions, censoring at the bounds, gradients."""
+
+import math
+
+import torch
+
+from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
+
+
+class Affine(torch.nn.Module):
+    """A fixed actor: tanh of a linear map, like a bounded DDPG actor."""
+
+    def __init__(self, weight):
+        super().__init__()
+        self.weight = torch.nn.Parameter(weight)
+
+    def forward(self, features):
+        return torch.tanh(features @ self.weight.to(features.dtype))
+
+
+def _model(motor_noise=0.3):
+    weight = torch.tensor([[1.5, -0.5], [0.3, 2.0]], dtype=torch.float64)
+    low, high = -torch.ones(2), torch.ones(2)
+    return CensoredGaussianActionModel(Affine(weight), low, high, motor_noise)
+
+
+def test_censored_gaussian_is_a_distribution_with_point_masses_at_the_bounds():
+    """Interior density integrates with the two tail masses to 1 (per dimension, grid 1e-4)."""
+    model = _model()
+    features = torch.tensor([[0.4, 0.9]], dtype=torch.float64)
+    nuisance = model.nuisance_init.double()
+    grid = torch.linspace(-1 + 1e-4, 1 - 1e-4, 20001, dtype=torch.float64)
+    mean = model.actor(features)[0]
+    for dim in range(2):
+        # the other dimension sits at its mean, where its density is 1 / (σ √(2π))
+        action = torch.full((len(grid), 2), mean[1 - dim].item(), dtype=torch.float64)
+        action[:, dim] = grid
+        joint = model.log_prob(features.expand(len(grid), -1), action, nuisance).exp()
+        other_density = math.exp(-math.log(0.3) - 0.5 * math.log(2 * math.pi))
+        interior = torch.trapezoid(joint / other_density, grid)
+        edge = action[:2].clone()
+        edge[0, dim], edge[1, dim] = -1.0, 1.0
+        masses = model.log_prob(features.expand(2, -1), edge, nuisance).exp() / other_density
+        assert abs(interior.item() + masses.sum().item() - 1) < 1e-3
+
+
+def test_a_clipped_action_scores_the_tail_probability():
+    model = _model(motor_noise=0.2)
+    features = torch.tensor([[0.5, 0.1]], dtype=torch.float64)
+    nuisance = model.nuisance_init.double()
+    mean = model.actor(features)[0]
+    action = torch.tensor([[1.0, mean[1].item()]], dtype=torch.float64)
+    expected = torch.special.log_ndtr((mean[0] - 1) / 0.2) + (
+        -math.log(0.2) - 0.5 * math.log(2 * math.pi)
+    )
+    assert torch.allclose(model.log_prob(features, action, nuisance), expected.reshape(1))
+
+
+def test_log_prob_is_differentiable_in_features_and_noise():
+    model = _model()
+    features = torch.randn(5, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    features.requires_grad_(True)
+    nuisance = model.nuisance_init.double().clone().requires_grad_(True)
+    action = torch.tensor([[-1.0, 0.2], [0.3, 1.0], [0.0, 0.0], [0.99, -0.99], [1.0, -1.0]])
+    torch.autograd.gradcheck(
+        lambda f, n: model.log_prob(f, action.double(), n), (features, nuisance)
+    )
+
+
+def test_boltzmann_probabilities_sum_to_one_and_sharpen_with_temperature():
+    q = torch.nn.Linear(3, 3).double()
+    model = BoltzmannActionModel(q, temperature=1.0)
+    features = torch.randn(4, 3, dtype=torch.float64)
+    actions = torch.arange(3).expand(4, 3)
+    for log_tau in (0.0, -2.0):
+        nuisance = torch.tensor([log_tau], dtype=torch.float64)
+        logp = torch.stack(
+            [model.log_prob(features, actions[:, a], nuisance) for a in range(3)], -1
+        )
+        assert torch.allclose(logp.exp().sum(-1), torch.ones(4, dtype=torch.float64))
+    best = q(features).argmax(-1)
+    cold = model.log_prob(features, best, torch.tensor([-4.0], dtype=torch.float64)).exp()
+    warm = model.log_prob(features, best, torch.tensor([0.0], dtype=torch.float64)).exp()
+    assert (cold >= warm).all()
