@@ -12,25 +12,12 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical, TensorSpec
 
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, action_in_spec
 
-__all__ = ["TRIAL_KEYS", "validate_trials", "action_in_spec"]
+__all__ = ["TRIAL_KEYS", "validate_trials"]
 
 #: the fields every held trial has
 TRIAL_KEYS = ("state", "action", "target", "mask", "task_theta")
-
-
-def action_in_spec(spec: TensorSpec, action: torch.Tensor) -> torch.Tensor:
-    """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous)."""
-    if isinstance(spec, Categorical):
-        integral = (
-            action == action.round()
-            if action.is_floating_point()
-            else torch.ones_like(action, dtype=torch.bool)
-        )
-        return integral & (action >= 0) & (action < spec.n)
-    low, high = spec.space.low.to(action.device), spec.space.high.to(action.device)
-    return ((action >= low) & (action <= high)).all(-1)
 
 
 def _where(bad: torch.Tensor) -> str:

@@ -12,11 +12,11 @@ from __future__ import annotations
 import abc
 
 import torch
-from torchrl.data import TensorSpec
+from torchrl.data import Categorical, TensorSpec
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["TaskModel"]
+__all__ = ["TaskModel", "action_in_spec"]
 
 
 class TaskModel(abc.ABC):
@@ -144,3 +144,16 @@ def _batched_jacobian(fn, state: torch.Tensor, *args: torch.Tensor) -> torch.Ten
     ]
     jac = torch.func.vmap(torch.func.jacrev(fn, argnums=0))(*flat)
     return jac.reshape(*batch, *jac.shape[1:])
+
+
+def action_in_spec(spec: TensorSpec, action: torch.Tensor) -> torch.Tensor:
+    """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous)."""
+    if isinstance(spec, Categorical):
+        integral = (
+            action == action.round()
+            if action.is_floating_point()
+            else torch.ones_like(action, dtype=torch.bool)
+        )
+        return integral & (action >= 0) & (action < spec.n)
+    low, high = spec.space.low.to(action.device), spec.space.high.to(action.device)
+    return ((action >= low) & (action <= high)).all(-1)

@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, action_in_spec
 
 __all__ = ["TaskEnv"]
 
@@ -83,9 +83,6 @@ class TaskEnv(EnvBase):
             observation["observation"] = Unbounded(shape=(*batch, m.observation_dim), device=device)
         self.observation_spec = Composite(observation, shape=batch, device=device)
         self.action_spec = m.action_spec.expand(*batch, *m.action_spec.shape).to(device)
-        # bounds of a box action spec, read once: the per-step check then costs two comparisons
-        spec = self.action_spec
-        self._action_bounds = (spec.low, spec.high) if hasattr(spec, "low") else None
         self.reward_spec = Unbounded(shape=(*batch, 1), device=device)
         self.done_spec = Composite(
             {
@@ -143,12 +140,7 @@ class TaskEnv(EnvBase):
         spec = self.action_spec
         if action.shape != spec.shape:
             raise ValueError(f"action: expected shape {list(spec.shape)}, got {list(action.shape)}")
-        if self._action_bounds is not None:  # a comparison fails on NaN too
-            low, high = self._action_bounds
-            valid = bool(((action >= low) & (action <= high)).all())
-        else:
-            valid = spec.is_in(action)
-        if valid:
+        if bool(action_in_spec(spec, action).all()):  # a comparison fails on NaN too
             return
         if action.is_floating_point() and not torch.isfinite(action).all():
             raise ValueError("action: expected finite values, got NaN or inf")
