@@ -15,9 +15,24 @@ from typing import Any
 
 import yaml
 
+from irc_torchrl.algorithms.ensemble import (
+    DDPGConfig,
+    EvaluationConfig,
+    Firefly2DConfig,
+)
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 
-__all__ = ["AgentsConfig", "FitConfig", "Firefly1DConfig", "load_config", "config_to_dict"]
+__all__ = [
+    "AgentsConfig",
+    "DDPGConfig",
+    "EvaluationConfig",
+    "FitConfig",
+    "Firefly1DConfig",
+    "Firefly2DConfig",
+    "load_config",
+    "load_firefly2d_config",
+    "config_to_dict",
+]
 
 
 @dataclass
@@ -36,8 +51,8 @@ class AgentsConfig:
 class FitConfig:
     """Algorithm 2 settings (see :func:`irc_torchrl.algorithms.fit.fit_theta`)."""
 
-    n_screen: int = 32
-    n_starts: int = 1
+    n_screen: int = 64
+    n_starts: int = 4
     max_iter: int = 40
 
 
@@ -49,6 +64,8 @@ class Firefly1DConfig:
     seed: int = 0
     #: torch threads; small networks run fastest on one thread per process
     threads: int = 1
+    #: flush denormal floats to zero (they slow CPUs down several-fold)
+    flush_denormal: bool = True
     q_iteration: QIterationConfig = field(default_factory=QIterationConfig)
     agents: AgentsConfig = field(default_factory=AgentsConfig)
     fit: FitConfig = field(default_factory=FitConfig)
@@ -101,7 +118,23 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
 
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Firefly1DConfig:
     """The embedded default, updated by the YAML file at ``path`` and then by ``key=value``."""
-    config = Firefly1DConfig()
+    config = _update(Firefly1DConfig(), path, overrides)
+    if config.agents.world not in ("known", "shared"):
+        raise ValueError(
+            f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}"
+        )
+    return config
+
+
+def load_firefly2d_config(
+    path: str | Path | None = None, overrides: Sequence[str] = ()
+) -> Firefly2DConfig:
+    """The 2D ensemble-training config: embedded default, then the YAML file, then ``key=value``."""
+    return _update(Firefly2DConfig(), path, overrides).validate()
+
+
+def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> Any:
+    """``config`` updated in place by the YAML file at ``path``, then by ``key=value`` items."""
     if path is not None:
         path = Path(path)
         if not path.is_file():
@@ -118,8 +151,4 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
         if not sep:
             raise ValueError(f"config: override {item!r} must look like key=value")
         _set(config, key.strip(), yaml.safe_load(value), config)
-    if config.agents.world not in ("known", "shared"):
-        raise ValueError(
-            f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}"
-        )
     return config

@@ -278,11 +278,11 @@ def test_recovery_small_fixed_seed_set(firefly1d_model, trained_q, space):
 def test_fit_reaches_at_least_the_likelihood_of_the_truth(firefly1d_model, trained_q, space):
     """A maximum-likelihood fit must score ≥ the log-likelihood at the true (θ*, τ = 0.5).
 
-    Same set-up as the recovery test with simulation seed 2. Measured: agent 3 (g_a = 0.52,
-    log σ₀ = −2.49) ends at log σ₀ = −2.996 (the prior's lower bound), reported as converged,
-    with log L = −763.97 against −726.52 at the truth (the profile in log σ₀ peaks near −2.47);
-    ``n_starts=4`` finds −725.66. The fit stalls at the bound, where the logit map flattens the
-    gradient in unconstrained coordinates.
+    Same set-up as the recovery test with simulation seed 2. It guards against two failures
+    seen on agent 3 (g_a = 0.52, log σ₀ = −2.49; log L = −726.52 at the truth): a long Newton
+    step into the saturated end of the logit map stalled at log σ₀'s bound (log L −763.97),
+    and a single start stopped in a poor local optimum (g_a 0.70, log L −1571.65). With the
+    trust region, Sobol screening and 4 starts the fit finds −725.66.
     """
     theta_true, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 2)
     loss = make_loss(firefly1d_model, trained_q, 6)

@@ -17,6 +17,7 @@ from tqdm.auto import tqdm
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.recovery import recover_agents
+from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.config import Firefly1DConfig, config_to_dict
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.firefly1d import Firefly1DModel
@@ -45,9 +46,11 @@ def dp_comparison(
 
 def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = True) -> dict:
     """Run the 1D demo into ``out``: ``config.yaml``, ``summary.json`` and three figures."""
-    out = Path(out)
-    torch.set_num_threads(config.threads)
-    torch.set_flush_denormal(True)
+    with torch_settings(config.threads, config.flush_denormal):
+        return _run_demo(config, Path(out), show_progress)
+
+
+def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     model = Firefly1DModel()
     write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
 

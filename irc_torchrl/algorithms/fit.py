@@ -58,8 +58,8 @@ class FitResult:
 def fit_theta(
     loss: InverseRationalLoss,
     trials: TensorDictBase,
-    n_starts: int = 1,
-    n_screen: int = 32,
+    n_starts: int = 4,
+    n_screen: int = 64,
     max_iter: int = 40,
     tol: float = 1e-6,
     seed: int = 0,
@@ -67,52 +67,61 @@ def fit_theta(
 ) -> FitResult:
     """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``).
 
-    ``n_screen`` candidates per agent (the prior's default and draws from the prior) are scored
-    by likelihood alone; Newton runs from the best ``n_starts`` of them and the best end point
-    per agent is kept. Returns θ̂, 95% intervals from the observed Fisher
-    information, identifiability flags, the log-likelihood and whether each fit converged.
+    ``n_screen`` candidates (the prior's default and draws from the prior, the same for every
+    agent) are scored by likelihood alone; Newton runs from each agent's best ``n_starts`` of
+    them and the best end point per agent is kept. Agents are independent rows: an agent's
+    result does not depend on the others in the call. Returns θ̂, 95% intervals from the
+    observed Fisher information, identifiability flags, the log-likelihood and whether each
+    fit converged.
     """
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents = trials.shape[0]
     free = space.free_mask
-    generator = torch.Generator().manual_seed(seed)
     k = int(free.sum())
-    params = _screen_starts(loss, trials, n_screen, n_starts, generator)
+    params = _screen_starts(loss, trials, n_screen, n_starts, seed)
     rows = (
         trials.unsqueeze(1)
         .expand(n_agents, n_starts, *trials.shape[1:])
         .reshape(n_agents * n_starts, *trials.shape[1:])
     )
 
-    def nll(p: torch.Tensor) -> torch.Tensor:
-        return -loss.log_likelihood(loss.theta(p[:, :k]), p[:, k:], rows)
+    def nll(p: torch.Tensor, data: TensorDictBase) -> torch.Tensor:
+        return -loss.log_likelihood(loss.theta(p[:, :k]), p[:, k:], data)
 
-    value, grad, hessian = batched_hessian(nll, params)
-    damping = torch.full((params.shape[0], 1, 1), 1e-3, dtype=torch.float64)
+    value, grad, hessian = batched_hessian(lambda p: nll(p, rows), params)
+    damping = torch.full((params.shape[0],), 1e-3, dtype=torch.float64)
     eye = torch.eye(params.shape[1], dtype=torch.float64)
     converged = torch.zeros(params.shape[0], dtype=torch.bool)
+    stalled = torch.zeros_like(converged)  # no step improves: stop, but do not claim θ̂
     iterations = 0
     for iterations in range(1, max_iter + 1):
-        scale = hessian.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye
-        step = -torch.linalg.solve(hessian + damping * (scale + eye), grad.unsqueeze(-1))
+        # only rows still moving cost work; a rejected step leaves a row's derivatives valid
+        active = (~converged & ~stalled).nonzero().squeeze(-1)
+        h, g, d = hessian[active], grad[active], damping[active]
+        scale = h.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye
+        step = -torch.linalg.solve(h + d.view(-1, 1, 1) * (scale + eye), g.unsqueeze(-1))
         # a trust region in unconstrained units: one long step can land where the logit
         # saturates, the gradient vanishes and the fit would stall far from θ̂
-        step = step.squeeze(-1) * (MAX_STEP / step.abs().amax((-2, -1)).unsqueeze(-1)).clamp(max=1)
-        step = torch.where(converged.unsqueeze(-1), torch.zeros_like(step), step)
+        step = step.squeeze(-1)
+        step = step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1)
         with torch.no_grad():
-            trial_value = nll(params + step)
-        better = trial_value < value - 1e-12
-        accept = better & ~converged
-        params = torch.where(accept.unsqueeze(-1), params + step, params)
-        damping = torch.where(accept.view(-1, 1, 1), damping / 3, damping * 8).clamp(1e-9, 1e9)
+            accept = nll(params[active] + step, rows[active]) < value[active] - 1e-12
+        damping[active] = torch.where(accept, d / 3, d * 8).clamp(1e-9, 1e9)
         # Newton decrement: the decrease a full step promises; tiny means θ̂ is reached
-        decrement = -(grad * step).sum(-1)
-        converged |= (decrement.abs() < tol) | (damping.view(-1) >= 1e9)
-        value, grad, hessian = batched_hessian(nll, params)
+        decrement = -(g * step).sum(-1)
+        converged[active] = decrement.abs() < tol
+        stalled[active] = damping[active] >= 1e9
+        moved = active[accept]
+        if len(moved):
+            params[moved] += step[accept]
+            data = rows[moved]
+            value[moved], grad[moved], hessian[moved] = batched_hessian(
+                lambda p, data=data: nll(p, data), params[moved]
+            )
         if progress is not None:
             progress(iterations, max_iter)
-        if converged.all():
+        if (converged | stalled).all():
             break
     best = value.view(n_agents, n_starts).argmin(1)
     pick = torch.arange(n_agents) * n_starts + best
@@ -135,22 +144,31 @@ def _screen_starts(
     trials: TensorDictBase,
     n_screen: int,
     n_starts: int,
-    generator: torch.Generator,
+    seed: int,
 ) -> torch.Tensor:
     """The ``n_starts`` most likely of ``n_screen`` prior draws per agent, ``[A·n_starts, p]``."""
     space = loss.theta_space
     n_agents = trials.shape[0]
-    # agent-major draws: an agent's candidates do not depend on how many agents are fitted
-    draws = space.sample((n_agents, n_screen), generator=generator, dtype=torch.float64)
-    draws[:, 0] = space.default(torch.float64)
-    u = space.to_unconstrained(draws)[..., space.free_mask]
+    # the same candidates for every agent (an agent's fit depends on its data and the seed
+    # alone, not on which other agents share the call), spread evenly by a Sobol sequence
+    free = space.free_mask
+    low, high = space.low(torch.float64)[free], space.high(torch.float64)[free]
+    sobol = torch.quasirandom.SobolEngine(int(free.sum()), scramble=True, seed=seed)
+    draws = space.default(torch.float64).expand(n_screen, -1).clone()
+    draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
+    draws[0] = space.default(torch.float64)
+    u = space.to_unconstrained(draws)[:, free]
     nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
     with torch.no_grad():
         scores = torch.stack(
-            [loss.log_likelihood(loss.theta(u[:, s]), nuisance, trials) for s in range(n_screen)], 1
+            [
+                loss.log_likelihood(loss.theta(u_s.expand(n_agents, -1)), nuisance, trials)
+                for u_s in u
+            ],
+            1,
         )
     best = scores.topk(n_starts, dim=1).indices  # [A, n_starts]
-    chosen = u.gather(1, best.unsqueeze(-1).expand(-1, -1, u.shape[-1]))
+    chosen = u[best]
     return torch.cat([chosen, nuisance.unsqueeze(1).expand(-1, n_starts, -1)], -1).reshape(
         n_agents * n_starts, -1
     )

@@ -1,0 +1,6 @@
+"""The inverse objective and its intervals (mirrors ``torchrl.objectives``)."""
+
+from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
+from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+__all__ = ["InverseRationalLoss", "Intervals", "batched_hessian", "fisher_intervals"]

@@ -1,0 +1,564 @@
+"""Algorithm 1 on continuous-action tasks: one θ-conditioned DDPG policy over the whole θ prior.
+
+A TorchRL ``Collector`` steps a batched :class:`~irc_torchrl.envs.firefly2d.Firefly2DEnv` whose
+every element draws its θ from the prior at each trial; :class:`EKFBelief` keeps the agent's
+belief under that θ and :class:`BeliefReward` pays the reward the agent expects under its
+belief (the paper's ``R_θ(b, a)``). Transitions go to a ``TensorDictReplayBuffer``;
+``DDPGLoss`` (TD(0) targets, target networks moved by ``SoftUpdate``) trains an actor and a
+critic that both read the belief features and θ. Exploration is additive Gaussian noise
+annealed over frames. A fixed θ grid evaluates the greedy policy on the world's reward, and
+the best policy by evaluation is kept (learning curves are not monotone).
+
+A *specialist* is the same algorithm over a θ space with every parameter fixed
+(``theta_fixed``): the premise of the method is that the ensemble matches it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import Compose, EnvBase, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import AdditiveGaussianModule
+from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+
+import irc_torchrl
+from irc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+from irc_torchrl.data.files import write_json, write_text
+from irc_torchrl.envs.belief import BeliefReward, EKFBelief
+from irc_torchrl.envs.firefly2d import Firefly2DEnv, Firefly2DModel, firefly2d_theta_space
+from irc_torchrl.modules.actor_critic import ACTIVATIONS, make_actor, make_critic
+from irc_torchrl.modules.pursuit import BeliefPursuit
+from irc_torchrl.theta import ThetaSpace
+
+__all__ = [
+    "DDPGConfig",
+    "EvaluationConfig",
+    "Firefly2DConfig",
+    "TrainResult",
+    "config_from_dict",
+    "evaluate_policy",
+    "load_ensemble_policy",
+    "make_model",
+    "theta_grid",
+    "train_ensemble",
+]
+
+TASK = "firefly2d"
+
+
+@dataclass
+class DDPGConfig:
+    """Settings of the DDPG learner in :func:`train_ensemble`."""
+
+    #: parallel environments, each with its own θ
+    n_envs: int = 256
+    #: batched env steps per collector batch; frames per batch = n_envs × steps_per_batch
+    steps_per_batch: int = 4
+    #: gradient updates per collector batch (one per batched step by default)
+    updates_per_batch: int = 4
+    #: training length, in env frames (one frame = one step of one environment)
+    total_frames: int = 1_536_000
+    #: frames collected before the first update: by ``warmup_policy`` at the start of a run,
+    #: by the current policy after a resume (the replay buffer is not checkpointed)
+    warmup_frames: int = 10_240
+    #: "pursuit": the belief-pursuit controller plus ``warmup_sigma`` noise (puts rewarded
+    #: stops in the buffer: uniform random actions stop within 3 steps and never reach a
+    #: target, so the sparse stop reward is never seen); "random": uniform actions
+    warmup_policy: str = "pursuit"
+    warmup_sigma: float = 0.3
+    buffer_size: int = 200_000
+    batch_size: int = 512
+    hidden: list[int] = field(default_factory=lambda: [64, 64, 64])
+    activation: str = "softplus"
+    lr_actor: float = 1e-3
+    lr_critic: float = 1e-3
+    #: gradient norm clip of each network (0 disables)
+    max_grad_norm: float = 10.0
+    gamma: float = 0.98
+    tau: float = 0.005
+    #: std of the additive Gaussian exploration noise, annealed linearly over anneal_frames
+    sigma_init: float = 0.4
+    sigma_end: float = 0.05
+    anneal_frames: int = 1_000_000
+    #: collector processes (1: in this process; more: a MultiSyncCollector)
+    collector_workers: int = 1
+
+
+@dataclass
+class EvaluationConfig:
+    """The fixed θ set on which :func:`evaluate_policy` scores the greedy policy."""
+
+    #: θ points, a Latin hypercube over the free parameters
+    n_theta: int = 64
+    trials_per_theta: int = 8
+    #: evaluate every this many gradient updates (and at the end)
+    every: int = 500
+    #: seed of the θ grid and of the evaluation trials (common to every evaluation)
+    seed: int = 12345
+
+
+@dataclass
+class Firefly2DConfig:
+    """Algorithm 1 on the 2D firefly task (``irc train --config configs/firefly2d.yaml``)."""
+
+    task: str = TASK
+    seed: int = 0
+    #: torch threads; small networks run fastest on one thread per process
+    threads: int = 1
+    #: flush denormal floats to zero (they made early CPU runs 5-10× slower)
+    flush_denormal: bool = True
+    #: θ parameters held fixed beyond the task's own ({name: value}); all fixed = a specialist
+    theta_fixed: dict = field(default_factory=dict)
+    #: write a checkpoint every this many gradient updates (and at the end)
+    checkpoint_every: int = 1000
+    #: "csv", "tensorboard" (when installed) or "none"
+    logger: str = "csv"
+    ddpg: DDPGConfig = field(default_factory=DDPGConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+
+    def validate(self) -> Firefly2DConfig:
+        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        d, e = self.ddpg, self.evaluation
+        if self.task != TASK:
+            raise ValueError(f"config: task must be {TASK!r}, got {self.task!r}")
+        positive = {
+            "threads": self.threads,
+            "checkpoint_every": self.checkpoint_every,
+            "ddpg.n_envs": d.n_envs,
+            "ddpg.steps_per_batch": d.steps_per_batch,
+            "ddpg.updates_per_batch": d.updates_per_batch,
+            "ddpg.total_frames": d.total_frames,
+            "ddpg.buffer_size": d.buffer_size,
+            "ddpg.batch_size": d.batch_size,
+            "ddpg.anneal_frames": d.anneal_frames,
+            "ddpg.collector_workers": d.collector_workers,
+            "ddpg.lr_actor": d.lr_actor,
+            "ddpg.lr_critic": d.lr_critic,
+            "evaluation.n_theta": e.n_theta,
+            "evaluation.trials_per_theta": e.trials_per_theta,
+            "evaluation.every": e.every,
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise ValueError(f"config: {name} must be positive, got {value}")
+        for name, value in {"ddpg.gamma": d.gamma, "ddpg.tau": d.tau}.items():
+            if not 0 < value <= 1:
+                raise ValueError(f"config: {name} must lie in (0, 1], got {value}")
+        if d.n_envs % d.collector_workers:
+            raise ValueError(
+                f"config: ddpg.n_envs={d.n_envs} must be a multiple of "
+                f"ddpg.collector_workers={d.collector_workers}"
+            )
+        if not d.hidden or any(int(h) <= 0 for h in d.hidden):
+            raise ValueError(f"config: ddpg.hidden must list positive widths, got {d.hidden}")
+        if d.activation not in ACTIVATIONS:
+            raise ValueError(
+                f"config: ddpg.activation must be one of {sorted(ACTIVATIONS)}, "
+                f"got {d.activation!r}"
+            )
+        if d.warmup_policy not in ("pursuit", "random"):
+            raise ValueError(
+                f"config: ddpg.warmup_policy must be 'pursuit' or 'random', "
+                f"got {d.warmup_policy!r}"
+            )
+        if self.logger not in ("csv", "tensorboard", "none"):
+            raise ValueError(
+                f"config: logger must be 'csv', 'tensorboard' or 'none', got {self.logger!r}"
+            )
+        make_model(self)  # theta_fixed: unknown names and out-of-range values
+        return self
+
+
+def config_from_dict(data: Mapping[str, Any]) -> Firefly2DConfig:
+    """Rebuild a :class:`Firefly2DConfig` from its plain-dict form (checkpoints, summaries)."""
+    data = dict(data)
+    return Firefly2DConfig(
+        **{k: v for k, v in data.items() if k not in ("ddpg", "evaluation")},
+        ddpg=DDPGConfig(**data.get("ddpg", {})),
+        evaluation=EvaluationConfig(**data.get("evaluation", {})),
+    )
+
+
+def make_model(config: Firefly2DConfig) -> Firefly2DModel:
+    """The task of ``config``: the 2D firefly over its θ space with ``theta_fixed`` held."""
+    try:
+        space = firefly2d_theta_space().fix(**{k: float(v) for k, v in config.theta_fixed.items()})
+    except KeyError as error:
+        raise ValueError(f"config: theta_fixed: {error.args[0]}") from None
+    except ValueError as error:
+        raise ValueError(f"config: theta_fixed: {error}") from None
+    return Firefly2DModel(theta_space=space)
+
+
+def make_train_env(model: Firefly2DModel, n_envs: int, seed: int) -> EnvBase:
+    """The training world: θ from the prior per trial, the EKF belief, the belief reward."""
+    env = Firefly2DEnv(model=model, batch_size=(n_envs,), seed=seed)
+    return TransformedEnv(env, Compose(EKFBelief(model), BeliefReward(model)))
+
+
+def theta_grid(space: ThetaSpace, n: int, seed: int) -> torch.Tensor:
+    """``n`` θ covering the prior: a Latin hypercube over the free parameters, ``[n, d]``.
+
+    Each free parameter's range is cut into ``n`` equal strata and every stratum is used once,
+    at a random point, in a random pairing with the other parameters' strata (fixed seed).
+    """
+    generator = torch.Generator().manual_seed(seed)
+    theta = space.default().expand(n, space.dim).clone()
+    low, high = space.low(), space.high()
+    for i, name in enumerate(space.names):
+        if name in space.fixed:
+            continue
+        strata = torch.randperm(n, generator=generator).float()
+        u = (strata + torch.rand(n, generator=generator)) / n
+        theta[:, i] = low[i] + u * (high[i] - low[i])
+    return theta
+
+
+@torch.no_grad()
+def evaluate_policy(
+    model: Firefly2DModel,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    thetas: torch.Tensor,
+    trials_per_theta: int = 8,
+    seed: int = 12345,
+) -> dict[str, Any]:
+    """Score ``policy`` (greedy) on one trial per environment, ``trials_per_theta`` per θ.
+
+    The world pays its own reward (the true position inside the goal on stopping, minus effort),
+    not the agent's expected one: this is what an experimenter would score. Every call with the
+    same ``seed`` faces the same targets and noise, so evaluations are comparable.
+
+    Returns:
+        ``success_rate``, ``mean_return``, ``mean_length`` (steps), and per θ
+        ``per_theta_success`` and ``per_theta_return`` (lists, in the order of ``thetas``).
+    """
+    n_theta = thetas.shape[0]
+    batch = n_theta * trials_per_theta
+    theta = thetas.float().repeat_interleave(trials_per_theta, 0)
+    env = TransformedEnv(
+        Firefly2DEnv(model=model, batch_size=(batch,), theta=theta, seed=seed), EKFBelief(model)
+    )
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
+    done = rollout["next", "done"].squeeze(-1)  # [N, T]; the timeout makes every row end
+    last = done.int().argmax(-1)  # the first done of each row: the end of its first trial
+    steps = torch.arange(done.shape[-1])
+    alive = (steps.unsqueeze(0) <= last.unsqueeze(-1)).float()
+    returns = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1)
+    end = rollout[torch.arange(batch), last]
+    space = model.theta_space
+    radius = end["task_theta"][..., space.index("goal_radius")]
+    inside = (end["state"][..., :2] - end["target"]).norm(dim=-1) < radius
+    success = (model.stops(end["action"], end["step"]).squeeze(-1) & inside).float()
+    per_theta = success.reshape(n_theta, trials_per_theta).mean(-1)
+    return {
+        "success_rate": float(success.mean()),
+        "mean_return": float(returns.mean()),
+        "mean_length": float((last + 1).float().mean()),
+        "per_theta_success": per_theta.tolist(),
+        "per_theta_return": returns.reshape(n_theta, trials_per_theta).mean(-1).tolist(),
+    }
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train_ensemble` returns."""
+
+    #: the best policy by evaluation (greedy: run it under ``ExplorationType.DETERMINISTIC``)
+    actor: TensorDictSequential
+    #: the critic at the end of training
+    critic: TensorDictSequential
+    model: Firefly2DModel
+    config: Firefly2DConfig
+    #: one row per evaluation: frames, updates, cpu_s, train_cpu_s, success_rate, ...
+    history: list[dict[str, Any]]
+    #: the evaluation of the kept (best) policy
+    best: dict[str, Any]
+    frames: int
+    updates: int
+    checkpoint: Path | None
+
+
+class _Logger:
+    """TorchRL's CSV (or TensorBoard) logger under ``out``; does nothing without ``out``."""
+
+    def __init__(self, kind: str, out: Path | None) -> None:
+        self.logger = None
+        if out is None or kind == "none":
+            return
+        if kind == "tensorboard":
+            try:
+                from torchrl.record.loggers import TensorboardLogger
+
+                self.logger = TensorboardLogger("train", log_dir=str(out / "logs"))
+                return
+            except ImportError:
+                pass  # TensorBoard absent: fall back to CSV as documented
+        from torchrl.record.loggers import CSVLogger
+
+        self.logger = CSVLogger("train", log_dir=str(out / "logs"))
+
+    def log(self, values: Mapping[str, float], step: int) -> None:
+        if self.logger is not None:
+            for name, value in values.items():
+                self.logger.log_scalar(name, float(value), step=step)
+
+
+def _progress_bar(enabled: bool, total: int, initial: int):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, unit="frame", unit_scale=True, desc="train")
+
+
+def train_ensemble(
+    config: Firefly2DConfig | None = None,
+    out: str | Path | None = None,
+    resume: str | Path | None = None,
+    progress: bool = True,
+    seed: int | None = None,
+) -> TrainResult:
+    """Train one θ-conditioned DDPG policy over the θ prior (Algorithm 1).
+
+    Args:
+        config: the settings (default: the embedded default of :class:`Firefly2DConfig`).
+        out: folder for ``checkpoint.pt`` (every ``checkpoint_every`` updates and at the end),
+            ``config.yaml``, ``summary.json`` and the logger's files; ``None`` writes nothing.
+        resume: a checkpoint to continue from. Networks, optimisers, exploration noise,
+            counters and RNG states are restored; the replay buffer and the trials in flight
+            are not (the buffer is refilled with ``warmup_frames`` from the current policy).
+        progress: show a progress bar with the current success rate.
+        seed: overrides ``config.seed``.
+
+    Deterministic for a seed and a single collector process: nothing depends on wall time.
+    """
+    config = dataclasses.replace(config if config is not None else Firefly2DConfig())
+    if seed is not None:
+        config.seed = int(seed)
+    config.validate()
+    out = Path(out) if out is not None else None
+    torch.set_num_threads(config.threads)
+    torch.set_flush_denormal(config.flush_denormal)
+    with torch.random.fork_rng():
+        return _train(config, out, resume, progress)
+
+
+def _train(
+    config: Firefly2DConfig, out: Path | None, resume: str | Path | None, progress: bool
+) -> TrainResult:
+    d, e = config.ddpg, config.evaluation
+    model = make_model(config)
+    torch.manual_seed(config.seed)
+    actor = make_actor(model, d.hidden, d.activation)
+    critic = make_critic(model, d.hidden, d.activation)
+    noise = AdditiveGaussianModule(
+        model.action_spec,
+        sigma_init=d.sigma_init,
+        sigma_end=d.sigma_end,
+        annealing_num_steps=d.anneal_frames,
+    )
+    explore = TensorDictSequential(actor, noise)
+    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=d.gamma)
+    target_update = SoftUpdate(loss, tau=d.tau)
+    opt_actor = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=d.lr_actor)
+    opt_critic = torch.optim.Adam(loss.value_network_params.values(True, True), lr=d.lr_critic)
+    thetas = theta_grid(model.theta_space, e.n_theta, e.seed)
+
+    frames, updates, history, best = 0, 0, [], None
+    best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
+    env_seed = config.seed
+    if resume is not None:
+        ckpt = load_checkpoint(resume, task=TASK, theta_space=model.theta_space)
+        loss.load_state_dict(ckpt["loss"])
+        opt_actor.load_state_dict(ckpt["optimiser_actor"])
+        opt_critic.load_state_dict(ckpt["optimiser_critic"])
+        noise.load_state_dict(ckpt["exploration"])
+        best_actor = ckpt["best_actor"]
+        frames, updates = int(ckpt["counters"]["frames"]), int(ckpt["counters"]["updates"])
+        history, best = list(ckpt["history"]), ckpt["best"]
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        # a fresh world stream for the trials after the resume, derived from the counters
+        env_seed = config.seed + 7919 * (updates + 1)
+
+    frames_per_batch = d.n_envs * d.steps_per_batch
+    remaining = max(d.total_frames - frames, 0)
+    remaining = math.ceil(remaining / frames_per_batch) * frames_per_batch
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(d.buffer_size), batch_size=d.batch_size)
+    logger = _Logger(config.logger, out)
+    bar = _progress_bar(progress, d.total_frames, frames)
+    cpu0 = time.process_time() - (history[-1]["cpu_s"] if history else 0.0)
+    eval_cpu = history[-1]["cpu_s"] - history[-1]["train_cpu_s"] if history else 0.0
+    checkpoint_path = out / "checkpoint.pt" if out is not None else None
+    if out is not None:
+        write_text(out / "config.yaml", yaml.safe_dump(dataclasses.asdict(config), sort_keys=False))
+
+    def state() -> dict[str, Any]:
+        return {
+            "loss": loss.state_dict(),
+            "actor": actor.state_dict(),
+            "best_actor": best_actor,
+            "optimiser_actor": opt_actor.state_dict(),
+            "optimiser_critic": opt_critic.state_dict(),
+            "exploration": noise.state_dict(),
+            "counters": {"frames": frames, "updates": updates},
+            "rng": {"torch": torch.get_rng_state()},
+            "history": history,
+            "best": best,
+        }
+
+    def checkpoint() -> None:
+        if checkpoint_path is not None:
+            save_checkpoint(
+                checkpoint_path,
+                task=TASK,
+                theta_space=model.theta_space,
+                config=dataclasses.asdict(config),
+                state=state(),
+            )
+
+    def evaluate() -> None:
+        nonlocal best, best_actor, eval_cpu
+        start = time.process_time()
+        metrics = evaluate_policy(model, actor, thetas, e.trials_per_theta, e.seed)
+        eval_cpu += time.process_time() - start
+        cpu = time.process_time() - cpu0
+        row = {"frames": frames, "updates": updates, "cpu_s": cpu, "train_cpu_s": cpu - eval_cpu}
+        row.update({k: v for k, v in metrics.items() if not k.startswith("per_theta")})
+        history.append(row)
+        logger.log({k: v for k, v in row.items() if k not in ("frames", "updates")}, frames)
+        if best is None or metrics["mean_return"] > best["mean_return"]:
+            best = {**metrics, "frames": frames, "updates": updates}
+            best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
+        if bar is not None:
+            bar.set_postfix(success=f"{metrics['success_rate']:.0%}", best=f"{best['success_rate']:.0%}")
+
+    warmup = min(d.warmup_frames, d.buffer_size)
+    if resume is None and d.warmup_policy == "pursuit":
+        seeding = TensorDictSequential(
+            BeliefPursuit(model),
+            AdditiveGaussianModule(
+                model.action_spec, sigma_init=d.warmup_sigma, sigma_end=d.warmup_sigma
+            ),
+        )
+        warmup_collector = _make_collector(config, model, seeding, env_seed + 1, warmup, False)
+        for batch in warmup_collector:
+            buffer.extend(batch.reshape(-1))
+            frames += batch.numel()
+        warmup_collector.shutdown()
+    random_start = resume is None and d.warmup_policy == "random"
+    collector = _make_collector(config, model, explore, env_seed, remaining, random_start)
+    for batch in collector if remaining else ():
+        batch = batch.reshape(-1).exclude("features", "param", ("next", "features"))
+        buffer.extend(batch)
+        frames += batch.numel()
+        noise.step(batch.numel())
+        if bar is not None:
+            bar.update(batch.numel())
+        if len(buffer) < warmup:
+            continue
+        for _ in range(d.updates_per_batch):
+            losses = loss(buffer.sample())
+            (losses["loss_actor"] + losses["loss_value"]).backward()
+            if d.max_grad_norm > 0:
+                for group in (opt_actor, opt_critic):
+                    torch.nn.utils.clip_grad_norm_(group.param_groups[0]["params"], d.max_grad_norm)
+            opt_actor.step()
+            opt_critic.step()
+            opt_actor.zero_grad()
+            opt_critic.zero_grad()
+            target_update.step()
+            updates += 1
+            if updates % 100 == 0:
+                logger.log({k: losses[k].item() for k in ("loss_actor", "loss_value")}, frames)
+            if updates % e.every == 0:
+                evaluate()
+            if updates % config.checkpoint_every == 0:
+                checkpoint()
+        collector.update_policy_weights_()
+    collector.shutdown()
+    if bar is not None:
+        bar.close()
+    if not history or history[-1]["updates"] != updates:
+        evaluate()
+    checkpoint()
+    actor.load_state_dict(best_actor)
+    if out is not None:
+        write_json(
+            out / "summary.json",
+            {
+                "task": TASK,
+                "seed": config.seed,
+                "version": irc_torchrl.__version__,
+                "frames": frames,
+                "updates": updates,
+                "best": best,
+                "history": history,
+                "theta_grid": thetas.tolist(),
+                "theta_names": model.theta_space.names,
+            },
+        )
+    return TrainResult(actor, critic, model, config, history, best, frames, updates, checkpoint_path)
+
+
+def _make_collector(
+    config: Firefly2DConfig,
+    model: Firefly2DModel,
+    policy: TensorDictModuleBase,
+    seed: int,
+    total_frames: int,
+    random_start: bool,
+):
+    """A ``Collector`` (or ``MultiSyncCollector`` over processes) over the training world."""
+    d = config.ddpg
+    workers = d.collector_workers
+    common = {
+        "frames_per_batch": d.n_envs * d.steps_per_batch,
+        "total_frames": max(total_frames, d.n_envs * d.steps_per_batch),
+        "init_random_frames": d.warmup_frames if random_start else 0,
+        "auto_register_policy_transforms": False,
+    }
+    if workers == 1:
+        collector = Collector(make_train_env(model, d.n_envs, seed), policy, **common)
+    else:
+        makers = [
+            partial(make_train_env, model, d.n_envs // workers, seed + 104729 * i)
+            for i in range(workers)
+        ]
+        collector = MultiSyncCollector(makers, policy, **common)
+    collector.set_seed(seed)
+    return collector
+
+
+def load_ensemble_policy(
+    source: str | Path = TASK,
+) -> tuple[TensorDictSequential, Firefly2DModel, dict[str, Any]]:
+    """The kept (best-by-evaluation) policy of a checkpoint: ``(actor, model, checkpoint)``.
+
+    ``source`` is a path or the name of a packaged checkpoint (default: the shipped one).
+    """
+    ckpt = load_checkpoint(source, task=TASK)
+    config = config_from_dict(ckpt["config"])
+    model = make_model(config)
+    if ThetaSpace.from_config(ckpt["theta_space"]) != model.theta_space:
+        raise ValueError(
+            f"checkpoint {ckpt['path']}: theta_space does not match its own config's θ space"
+        )
+    actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
+    actor.load_state_dict(ckpt["best_actor"])
+    return actor.requires_grad_(False), model, ckpt

@@ -1,0 +1,133 @@
+"""Trained ensembles on disk: save and load, weights only.
+
+A checkpoint is one ``torch.save`` of plain data (tensors, dicts, lists, strings, numbers):
+network and optimiser state dicts, training counters, RNG states as tensors, the resolved
+config, the θ space, the task name and the library version. :func:`load_checkpoint` reads it
+with ``torch.load(weights_only=True)``, so a file can never run code when loaded, and checks
+that it belongs to the task and θ space the caller expects. A bare name (``"firefly2d"``)
+loads the checkpoint shipped inside the package.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+import irc_torchrl
+from irc_torchrl.data.files import atomic_path
+from irc_torchrl.theta import ThetaSpace
+
+__all__ = ["FORMAT", "PACKAGED", "load_checkpoint", "resolve_checkpoint", "save_checkpoint"]
+
+#: the format tag written into every checkpoint
+FORMAT = "irc_torchrl.checkpoint/1"
+#: where checkpoints shipped with the package live (loadable by bare name)
+PACKAGED = Path(__file__).resolve().parent / "checkpoints"
+
+
+def _major(version: str) -> str:
+    return str(version).split(".")[0]
+
+
+def save_checkpoint(
+    path: str | Path,
+    *,
+    task: str,
+    theta_space: ThetaSpace,
+    config: Mapping[str, Any],
+    state: Mapping[str, Any],
+) -> Path:
+    """Write a checkpoint atomically: a reader never sees a half-written file.
+
+    Args:
+        path: the file to write.
+        task: the task's name (``"firefly2d"``).
+        theta_space: the θ space the networks were trained over.
+        config: the resolved config, as a plain dict.
+        state: state dicts, counters and RNG states (plain data only).
+    """
+    payload = {
+        "format": FORMAT,
+        "task": task,
+        "version": irc_torchrl.__version__,
+        "theta_space": theta_space.to_config(),
+        "config": dict(config),
+        **state,
+    }
+    with atomic_path(path, suffix=".pt") as tmp:
+        torch.save(payload, tmp)
+    return Path(path)
+
+
+def resolve_checkpoint(source: str | Path) -> Path:
+    """The file behind ``source``: a path, or the name of a checkpoint shipped in the package."""
+    path = Path(source)
+    if path.is_file():
+        return path
+    if isinstance(source, str) and path.suffix == "" and len(path.parts) == 1:
+        packaged = PACKAGED / f"{source}.pt"
+        if packaged.is_file():
+            return packaged
+        names = sorted(p.stem for p in PACKAGED.glob("*.pt")) if PACKAGED.is_dir() else []
+        raise FileNotFoundError(
+            f"checkpoint: no file at {path} and no packaged checkpoint named {source!r} "
+            f"(packaged: {', '.join(names) or 'none'})"
+        )
+    raise FileNotFoundError(f"checkpoint: no file at {path}")
+
+
+def load_checkpoint(
+    source: str | Path,
+    *,
+    task: str | None = None,
+    theta_space: ThetaSpace | None = None,
+) -> dict[str, Any]:
+    """Read a checkpoint (weights only) and check it matches the expected task and θ space.
+
+    Args:
+        source: a file path, or the name of a packaged checkpoint (``"firefly2d"``).
+        task: the task the caller expects; ``None`` accepts any.
+        theta_space: the θ space the caller expects; ``None`` accepts any.
+
+    Raises:
+        FileNotFoundError: no such file or packaged name.
+        ValueError: the file is not a readable checkpoint (truncated, garbage, or holding
+            pickled objects other than plain data), or its task, θ space or library major
+            version does not match.
+    """
+    path = resolve_checkpoint(source)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(
+            f"checkpoint {path}: refused to load; it is not plain weights-only data ({first})"
+        ) from None
+    except (RuntimeError, EOFError, OSError, ValueError) as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(
+            f"checkpoint {path}: not a readable irc_torchrl checkpoint "
+            f"(truncated or corrupt: {first})"
+        ) from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        found = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise ValueError(f"checkpoint {path}: format is {found!r}, expected {FORMAT!r}")
+    if _major(data["version"]) != _major(irc_torchrl.__version__):
+        raise ValueError(
+            f"checkpoint {path}: version {data['version']} was written by another major version "
+            f"than this library's {irc_torchrl.__version__}"
+        )
+    if task is not None and data["task"] != task:
+        raise ValueError(f"checkpoint {path}: task is {data['task']!r}, expected {task!r}")
+    if theta_space is not None:
+        stored = ThetaSpace.from_config(data["theta_space"])
+        if stored != theta_space:
+            raise ValueError(
+                f"checkpoint {path}: theta_space is {stored!r}, expected {theta_space!r}"
+            )
+    data["path"] = str(path)
+    return data

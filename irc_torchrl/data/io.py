@@ -1,0 +1,352 @@
+"""Recorded trials in and out: NPZ, CSV, NWB and TensorDict memory-mapped folders.
+
+Every format holds the same table (docs/trajectory_schema.md): one row per time step with a
+trial column, the time in seconds, the model's state, action and target columns, and optional
+``theta.<name>`` columns for the task's θ. :func:`read_trials` checks the table
+(:mod:`irc_torchrl.data.validate`), converts units, resamples each trial to the model's time
+step and returns held trials ``[n_trials, T]`` ready for a fit. :func:`write_trials` writes
+held trials back; every write goes to a temporary file or folder renamed when complete.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import warnings
+import zipfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical
+
+from irc_torchrl.data.files import atomic_dir, atomic_path
+from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
+from irc_torchrl.data.units import convert_units
+from irc_torchrl.data.validate import (
+    THETA_PREFIX,
+    Trial,
+    check_columns,
+    check_trial,
+    split_trials,
+)
+from irc_torchrl.envs.model import TaskModel
+
+__all__ = ["read_trials", "write_trials", "trials_to_columns"]
+
+#: the median time step may differ from the model's by this fraction before resampling
+RESAMPLE_TOLERANCE = 0.01
+
+Columns = dict[str, np.ndarray]
+
+
+# --- public API ------------------------------------------------------------------------------
+def read_trials(
+    path: str | Path,
+    model: TaskModel,
+    *,
+    time_column: str = "time",
+    trial_column: str = "trial",
+    units: Mapping[str, str] | None = None,
+    resample: bool = True,
+) -> TensorDict:
+    """Read a recording into held trials ``[n_trials, T]``, refusing anything malformed.
+
+    Args:
+        path: ``.npz``, ``.csv``, ``.nwb`` (needs ``pynwb``), or a TensorDict memmap folder.
+        model: the task; its names and units define the columns (see the schema).
+        time_column, trial_column: the names of the time (s) and trial columns.
+        units: ``{column: unit}`` where the recording differs from the model's units,
+            e.g. ``{"x": "cm", "heading": "deg"}``.
+        resample: put each trial on the model's time grid when the recording's median step
+            differs from ``model.dt`` by more than 1% (a warning says so).
+
+    Returns:
+        ``state``, ``action``, ``target``, ``mask``, ``task_theta`` (θ columns, else the θ
+        space's default), ``time`` (seconds since the trial's first sample) and ``trial``
+        (the recording's trial number), padded to the longest trial by repeating its last step.
+    """
+    path = Path(path)
+    source = str(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{source}: no such file or folder")
+    reader = _reader(path)
+    columns = reader(path, model, time_column, trial_column)
+    check_columns(columns, model, source, time_column, trial_column)
+    columns = convert_units(columns, units or {}, model, source, time_column)
+    trials = split_trials(columns, source, trial_column)
+    for label, trial in trials:
+        check_trial(label, trial, model, source, time_column)
+    trials = _on_model_grid(trials, model, source, time_column, trial_column, resample)
+    held = _pack(trials, model, time_column, trial_column)
+    validate_trials(held, model)
+    return held
+
+
+def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> Path:
+    """Write held trials (``[n_trials, T]`` or ``[n_agents, n_trials, T]``) to ``path``.
+
+    The format follows the suffix (``.npz``, ``.csv``, ``.nwb``); a path without a suffix is
+    a TensorDict memmap folder. Agents are flattened into consecutive trials. Only the
+    recorded steps (``mask``) are written to the tables; the folder keeps the padded layout.
+    """
+    path = Path(path)
+    trials = validate_trials(trials, model).reshape(-1, trials.shape[-1])
+    if path.suffix == "":
+        held = trials.select(*TRIAL_KEYS).clone()
+        held["time"] = _field(trials, "time", model)
+        held["trial"] = _field(trials, "trial", model)
+        with atomic_dir(path) as tmp:
+            held.memmap(tmp)
+        return path
+    writer = _writer(path)
+    columns = trials_to_columns(trials, model)
+    with atomic_path(path, suffix=f".tmp{path.suffix}") as tmp:
+        writer(columns, tmp, model)
+    return path
+
+
+def trials_to_columns(
+    trials: TensorDictBase, model: TaskModel, time_column: str = "time", trial_column: str = "trial"
+) -> Columns:
+    """The recorded steps of held trials ``[n, T]`` as the schema's table, one row per step."""
+    trials = trials.detach().cpu()
+    mask = trials["mask"].numpy().astype(bool)
+    columns = {
+        trial_column: _field(trials, "trial", model).numpy()[mask],
+        time_column: _field(trials, "time", model).numpy()[mask],
+    }
+    state = trials["state"].numpy()
+    columns.update({name: state[..., i][mask] for i, name in enumerate(model.state_names)})
+    action = trials["action"].numpy()
+    if isinstance(model.action_spec, Categorical):
+        columns[model.action_names[0]] = action[mask].astype(np.int64)
+    else:
+        columns.update({name: action[..., i][mask] for i, name in enumerate(model.action_names)})
+    target = trials["target"].numpy()
+    columns.update({name: target[..., i][mask] for i, name in enumerate(model.target_names)})
+    theta = trials["task_theta"].numpy()
+    for i, name in enumerate(model.theta_space.names):
+        columns[THETA_PREFIX + name] = theta[..., i][mask]
+    return columns
+
+
+# --- formats ---------------------------------------------------------------------------------
+Reader = Callable[[Path, TaskModel, str, str], Columns]
+Writer = Callable[[Columns, Path, TaskModel], None]
+
+
+def _reader(path: Path) -> Reader:
+    if path.is_dir():
+        return _read_memmap
+    readers = {".npz": _read_npz, ".csv": _read_csv, ".nwb": _read_nwb}
+    if path.suffix not in readers:
+        raise ValueError(
+            f"{path}: unknown format {path.suffix!r}; expected .npz, .csv, .nwb "
+            "or a TensorDict memmap folder"
+        )
+    return readers[path.suffix]
+
+
+def _writer(path: Path) -> Writer:
+    writers = {".npz": _write_npz, ".csv": _write_csv, ".nwb": _write_nwb}
+    if path.suffix not in writers:
+        raise ValueError(
+            f"{path}: unknown format {path.suffix!r}; expected .npz, .csv, .nwb "
+            "or no suffix for a TensorDict memmap folder"
+        )
+    return writers[path.suffix]
+
+
+def _read_npz(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{path}: not an NPZ archive; expected a file written by np.savez")
+    columns = {}
+    with np.load(path, allow_pickle=False) as archive:
+        for name in archive.files:
+            try:
+                columns[name] = archive[name]
+            except ValueError:  # an object array, refused without unpickling
+                raise ValueError(
+                    f"{path}: column {name!r} holds Python objects; expected numeric arrays, "
+                    "one per column (object arrays are never unpickled)"
+                ) from None
+    return columns
+
+
+def _write_npz(columns: Columns, tmp: Path, model: TaskModel) -> None:
+    with open(tmp, "wb") as f:
+        np.savez(f, **columns)
+
+
+def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+    try:
+        with open(path, newline="") as f:
+            rows = [row for row in csv.reader(f) if row]
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise ValueError(
+            f"{path}: not a CSV text file ({err}); expected comma-separated values"
+        ) from err
+    if not rows:
+        return {}
+    header = [name.strip() for name in rows[0]]
+    values = np.empty((len(rows) - 1, len(header)))
+    for r, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise ValueError(
+                f"{path}: line {r} has {len(row)} values; expected {len(header)}, one per column "
+                f"of the header {header}"
+            )
+        for c, cell in enumerate(row):
+            try:
+                values[r - 2, c] = float(cell) if cell.strip() else np.nan
+            except ValueError:
+                raise ValueError(
+                    f"{path}: line {r}, column {header[c]!r}: {cell!r} is not a number; "
+                    "expected numbers (empty or NaN for a gap)"
+                ) from None
+    return {name: values[:, c] for c, name in enumerate(header)}
+
+
+def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
+    names = list(columns)
+    cells = [
+        [str(v) for v in col.tolist()]
+        if np.issubdtype(col.dtype, np.integer)
+        else [f"{v:.9g}" for v in col.tolist()]
+        for col in columns.values()
+    ]
+    with open(tmp, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(names)
+        writer.writerows(zip(*cells, strict=True))
+
+
+def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+    try:
+        trials = TensorDict.load_memmap(path)
+    except (FileNotFoundError, KeyError, ValueError, RuntimeError) as err:
+        raise ValueError(
+            f"{path}: not a TensorDict memmap folder ({err}); expected one written by "
+            "write_trials or TensorDict.memmap"
+        ) from None
+    missing = [k for k in TRIAL_KEYS if k not in trials.keys()]
+    if missing:
+        raise KeyError(f"{path}: missing field(s) {missing}; held trials need {list(TRIAL_KEYS)}")
+    return trials_to_columns(trials.reshape(-1, trials.shape[-1]), model, time_column, trial_column)
+
+
+def _nwb_module():
+    try:
+        nwb = importlib.import_module("irc_torchrl.data.nwb")
+    except ImportError as err:
+        raise ImportError(
+            f"NWB files need pynwb ({err}); install it with: pip install 'irc-torchrl[nwb]'"
+        ) from err
+    return nwb
+
+
+def _read_nwb(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+    return _nwb_module().read_nwb(path, model, time_column, trial_column)
+
+
+def _write_nwb(columns: Columns, tmp: Path, model: TaskModel) -> None:
+    _nwb_module().write_nwb(columns, tmp, model)
+
+
+# --- from table to held trials ---------------------------------------------------------------
+def _field(trials: TensorDictBase, key: str, model: TaskModel) -> torch.Tensor:
+    """``time`` (seconds) or ``trial`` (number) of held trials, made up when absent."""
+    if key in trials.keys():
+        return trials[key]
+    n, steps = trials.shape
+    if key == "time":
+        return (torch.arange(steps, dtype=torch.float64) * model.dt).expand(n, steps)
+    return torch.arange(n).unsqueeze(-1).expand(n, steps)
+
+
+def _on_model_grid(
+    trials: list[tuple[int | float, Trial]],
+    model: TaskModel,
+    source: str,
+    time_column: str,
+    trial_column: str,
+    resample: bool,
+) -> list[tuple[int | float, Trial]]:
+    """Each trial with its time from its start, resampled to ``model.dt`` where it differs."""
+    step = float(np.median(np.concatenate([np.diff(t[time_column]) for _, t in trials])))
+    if abs(step - model.dt) <= RESAMPLE_TOLERANCE * model.dt:
+        resample = False
+    elif not resample:
+        warnings.warn(
+            f"{source}: the median time step is {step:.6g} s but the model steps {model.dt} s; "
+            "kept as recorded (resample=False)",
+            stacklevel=3,
+        )
+    else:
+        warnings.warn(
+            f"{source}: resampled every trial from a median time step of {step:.6g} s "
+            f"to the model's {model.dt} s (linear; actions nearest-previous)",
+            stacklevel=3,
+        )
+    discrete = {trial_column}
+    if isinstance(model.action_spec, Categorical):
+        discrete.add(model.action_names[0])
+    out = []
+    for label, trial in trials:
+        time = trial[time_column].astype(np.float64)
+        time = time - time[0]
+        if resample:
+            grid = model.dt * np.arange(int(np.floor(time[-1] / model.dt + 1e-6)) + 1)
+            if len(grid) < 2:
+                raise ValueError(
+                    f"{source}: trial {label}, field {time_column!r}: lasts {time[-1]:.6g} s; "
+                    f"expected at least one model step ({model.dt} s) to resample"
+                )
+            previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
+            trial = {
+                name: values[previous] if name in discrete else np.interp(grid, time, values)
+                for name, values in trial.items()
+            }
+            time = grid
+        out.append((label, {**trial, time_column: time}))
+    return out
+
+
+def _pack(
+    trials: list[tuple[int | float, Trial]], model: TaskModel, time_column: str, trial_column: str
+) -> TensorDict:
+    """The held-trial layout, each trial padded to the longest by repeating its last step."""
+    steps = max(len(t[time_column]) for _, t in trials)
+
+    def stack(names: tuple[str, ...] | list[str], dtype: torch.dtype) -> torch.Tensor:
+        rows = [
+            np.stack([np.pad(t[n], (0, steps - len(t[n])), mode="edge") for n in names], -1)
+            for _, t in trials
+        ]
+        return torch.as_tensor(np.stack(rows), dtype=dtype)
+
+    theta_names = [THETA_PREFIX + n for n in model.theta_space.names]
+    default = model.theta_space.default(torch.float64).numpy()
+    for _, trial in trials:
+        for name, value in zip(theta_names, default, strict=True):
+            trial.setdefault(name, np.full(len(trial[time_column]), value))
+    lengths = torch.tensor([len(t[time_column]) for _, t in trials])
+    if isinstance(model.action_spec, Categorical):
+        action = stack(model.action_names, torch.int64)[..., 0]
+    else:
+        action = stack(model.action_names, torch.float32)
+    return TensorDict(
+        {
+            "state": stack(model.state_names, torch.float32),
+            "action": action,
+            "target": stack(model.target_names, torch.float32),
+            "mask": torch.arange(steps) < lengths.unsqueeze(-1),
+            "task_theta": stack(theta_names, torch.float32),
+            "time": stack([time_column], torch.float32)[..., 0],
+            "trial": torch.tensor([label for label, _ in trials]).unsqueeze(-1).expand(-1, steps),
+        },
+        batch_size=[len(trials), steps],
+    )

@@ -1,0 +1,154 @@
+"""The schema's table in Neurodata Without Borders files (needs ``pynwb``: ``irc-torchrl[nwb]``).
+
+Behaviour lives in the processing module ``behavior``: the state's distance fields as the
+:class:`~pynwb.behavior.SpatialSeries` ``position`` (in a ``Position``), its angles as
+``SpatialSeries`` in a ``CompassDirection``, its other fields (velocities) and the actions as
+:class:`~pynwb.TimeSeries` in ``BehavioralTimeSeries`` ``state`` and ``action``. All share one
+vector of session timestamps. The trials table holds each trial's start and stop, its target
+and its task θ (``theta.<name>`` columns). Trials follow one another with a one-second gap.
+"""
+
+from __future__ import annotations
+
+import datetime
+import uuid
+from pathlib import Path
+
+import numpy as np
+from pynwb import NWBHDF5IO, NWBFile, TimeSeries
+from pynwb.behavior import BehavioralTimeSeries, CompassDirection, Position, SpatialSeries
+
+from irc_torchrl.data.validate import THETA_PREFIX
+from irc_torchrl.envs.model import TaskModel
+
+__all__ = ["read_nwb", "write_nwb"]
+
+#: seconds between the end of one trial and the start of the next on the session clock
+TRIAL_GAP = 1.0
+
+Columns = dict[str, np.ndarray]
+
+
+def _layout(model: TaskModel) -> tuple[list[str], list[str], list[str]]:
+    """The state's position, angle and other fields."""
+    units = dict(zip(model.state_names, model.state_units, strict=True))
+    position = [n for n, u in units.items() if u == "distance"]
+    angles = [n for n, u in units.items() if u == "rad"]
+    return position, angles, [n for n in model.state_names if n not in position + angles]
+
+
+def write_nwb(
+    columns: Columns,
+    path: Path,
+    model: TaskModel,
+    time_column: str = "time",
+    trial_column: str = "trial",
+) -> None:
+    """Write the schema's table (one row per step) to the NWB file ``path``."""
+    trials = columns[trial_column]
+    labels = list(dict.fromkeys(trials.tolist()))
+    time = columns[time_column].astype(np.float64)
+    session = np.empty_like(time)
+    nwb = NWBFile(
+        session_description="held trials written by irc-torchrl",
+        identifier=str(uuid.uuid4()),
+        session_start_time=datetime.datetime.now(datetime.UTC),
+    )
+    extra = [n for n in columns if n.startswith(THETA_PREFIX)]
+    for name in [*model.target_names, *extra]:
+        nwb.add_trial_column(name=name, description=f"{name} of the trial (one value per trial)")
+    start = 0.0
+    for label in labels:
+        rows = trials == label
+        session[rows] = start + time[rows] - time[rows][0]
+        stop = float(session[rows][-1])
+        values = {n: float(columns[n][rows][0]) for n in [*model.target_names, *extra]}
+        nwb.add_trial(start_time=start, stop_time=stop, id=int(label), **values)
+        start = stop + TRIAL_GAP
+    position, angles, others = _layout(model)
+    units = dict(zip(model.state_names, model.state_units, strict=True))
+    behavior = nwb.create_processing_module("behavior", "the agent's state and actions")
+    pos = SpatialSeries(
+        name="position",
+        data=np.stack([columns[n] for n in position], -1),
+        timestamps=session,
+        reference_frame="the task's origin; columns " + ", ".join(position),
+        unit="metres",
+    )
+    behavior.add(Position(spatial_series=pos, name="Position"))
+    if angles:
+        behavior.add(
+            CompassDirection(
+                name="CompassDirection",
+                spatial_series=[
+                    SpatialSeries(
+                        name=n,
+                        data=columns[n],
+                        timestamps=pos,
+                        reference_frame="x axis",
+                        unit="radians",
+                    )
+                    for n in angles
+                ],
+            )
+        )
+    if others:
+        series = [
+            TimeSeries(name=n, data=columns[n], timestamps=pos, unit=units[n]) for n in others
+        ]
+        behavior.add(BehavioralTimeSeries(name="state", time_series=series))
+    actions = [
+        TimeSeries(name=n, data=columns[n], timestamps=pos, unit="dimensionless")
+        for n in model.action_names
+    ]
+    behavior.add(BehavioralTimeSeries(name="action", time_series=actions))
+    with NWBHDF5IO(str(path), "w") as io:
+        io.write(nwb)
+
+
+def read_nwb(
+    path: Path, model: TaskModel, time_column: str = "time", trial_column: str = "trial"
+) -> Columns:
+    """The schema's table from an NWB file laid out as :func:`write_nwb` writes it."""
+    try:
+        io = NWBHDF5IO(str(path), "r")
+        nwb = io.read()
+    except Exception as err:  # h5py and hdmf raise many types for a file that is not NWB
+        raise ValueError(f"{path}: not an NWB file ({err}); expected one written by pynwb") from err
+    with io:
+        try:
+            behavior = nwb.processing["behavior"]
+            pos = behavior["Position"]["position"]
+        except KeyError as err:
+            raise KeyError(
+                f"{path}: missing {err}; expected processing module 'behavior' with a "
+                "Position 'position' SpatialSeries (see docs/trajectory_schema.md)"
+            ) from None
+        stamps = np.asarray(pos.timestamps[:], dtype=np.float64)
+        data = np.asarray(pos.data[:]).reshape(len(stamps), -1)
+        position, angles, others = _layout(model)
+        table: Columns = {n: data[:, i] for i, n in enumerate(position)}
+        containers = {
+            **{n: "CompassDirection" for n in angles},
+            **{n: "state" for n in others},
+            **{n: "action" for n in model.action_names},
+        }
+        for name, container in containers.items():
+            try:
+                table[name] = np.asarray(behavior[container][name].data[:])
+            except KeyError:
+                table[name] = np.full(len(stamps), np.nan)  # reported as a gap, naming the field
+        if nwb.trials is None:
+            raise KeyError(f"{path}: missing the trials table; expected one row per trial")
+        trials = nwb.trials.to_dataframe()
+        trial = np.full(len(stamps), np.nan)
+        time = np.full(len(stamps), np.nan)
+        names = [n for n in trials.columns if n not in ("start_time", "stop_time")]
+        per_trial = {n: np.full(len(stamps), np.nan) for n in names}
+        for label, row in trials.iterrows():
+            rows = (stamps >= row["start_time"]) & (stamps <= row["stop_time"])
+            trial[rows] = label
+            time[rows] = stamps[rows] - row["start_time"]
+            for name, values in per_trial.items():
+                values[rows] = row[name]
+    return {trial_column: trial, time_column: time, **table, **per_trial}

@@ -1,0 +1,242 @@
+"""Checks on a raw recording, before it becomes held trials: one clear message per problem.
+
+A recording is a table of columns, one value per time step, with a trial column. Every check
+raises one ``KeyError`` (columns) or ``ValueError`` (values) whose message names the file, the
+trial, the field and what was expected, so that a fit never starts on data it would misread.
+Values are checked in the model's units (after :func:`~irc_torchrl.data.units.convert_units`);
+a velocity far beyond anything the θ space allows usually means a unit mistake.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Mapping
+
+import numpy as np
+from torchrl.data import Categorical
+
+from irc_torchrl.envs.model import TaskModel
+
+__all__ = [
+    "ABSURD",
+    "THETA_PREFIX",
+    "check_columns",
+    "check_trial",
+    "required_columns",
+    "split_trials",
+]
+
+#: a speed this many times the largest gain of its unit in the θ space is taken as a unit mistake
+ABSURD = 10.0
+#: columns ``theta.<name>`` give the task's θ per trial
+THETA_PREFIX = "theta."
+
+Trial = dict[str, np.ndarray]
+
+#: the unit a recording most likely used by mistake, per kind of checked field
+_LIKELY_MISTAKE = {"distance": "cm", "distance/s": "cm/s", "rad/s": "deg/s"}
+
+
+def required_columns(model: TaskModel, time_column: str, trial_column: str) -> list[str]:
+    """Every column a recording of ``model`` must have, in the schema's order."""
+    names = [*model.state_names, *model.action_names, *model.target_names]
+    return [trial_column, time_column, *names]
+
+
+def check_columns(
+    columns: Mapping[str, np.ndarray],
+    model: TaskModel,
+    source: str,
+    time_column: str = "time",
+    trial_column: str = "trial",
+) -> None:
+    """Refuse an empty table, missing or misnamed columns, unknown θ, ragged or text columns."""
+    required = required_columns(model, time_column, trial_column)
+    if not columns or all(np.size(v) == 0 for v in columns.values()):
+        raise ValueError(
+            f"{source}: the file holds no samples; expected one row per time step "
+            f"with columns {required}"
+        )
+    known = set(required) | {THETA_PREFIX + n for n in model.theta_space.names}
+    unknown = [name for name in columns if name not in known]
+    for name in required:
+        if name not in columns:
+            close = difflib.get_close_matches(name, unknown, n=1, cutoff=0.6)
+            hint = f"; column {close[0]!r} looks like a misnamed {name!r}" if close else ""
+            raise KeyError(
+                f"{source}: missing column {name!r}{hint}; expected columns {required} "
+                f"(optional {THETA_PREFIX}<name> for θ: {', '.join(model.theta_space.names)})"
+            )
+    for name in unknown:
+        if name.startswith(THETA_PREFIX):
+            close = difflib.get_close_matches(
+                name[len(THETA_PREFIX) :], model.theta_space.names, n=1
+            )
+            hint = f"; did you mean {THETA_PREFIX + close[0]!r}?" if close else ""
+            raise KeyError(
+                f"{source}: column {name!r} names no θ parameter{hint} "
+                f"expected {THETA_PREFIX}<name> with name in {model.theta_space.names}"
+            )
+    n_rows = len(columns[trial_column])
+    for name in [*required, *(n for n in columns if n.startswith(THETA_PREFIX))]:
+        value = np.asarray(columns[name])
+        if value.ndim != 1:
+            raise ValueError(
+                f"{source}: column {name!r} has shape {list(value.shape)}; "
+                "expected one value per time step (a 1-D array)"
+            )
+        if len(value) != n_rows:
+            raise ValueError(
+                f"{source}: column {name!r} has {len(value)} values but column "
+                f"{trial_column!r} has {n_rows}; expected one value per time step in every column"
+            )
+        if not (np.issubdtype(value.dtype, np.number) or value.dtype == np.bool_):
+            raise ValueError(
+                f"{source}: column {name!r} holds {value.dtype} values; expected numbers"
+            )
+
+
+def split_trials(
+    columns: Mapping[str, np.ndarray], source: str, trial_column: str = "trial"
+) -> list[tuple[int | float, Trial]]:
+    """The rows of each trial, in order of first appearance, as ``(label, {column: values})``."""
+    ids = np.asarray(columns[trial_column], dtype=np.float64)
+    if not np.isfinite(ids).all():
+        row = int(np.flatnonzero(~np.isfinite(ids))[0])
+        raise ValueError(
+            f"{source}: field {trial_column!r} is {ids[row]} at row {row}; "
+            "expected a trial number on every row"
+        )
+    labels, first = np.unique(ids, return_index=True)
+    out = []
+    for label in labels[np.argsort(first)]:
+        rows = ids == label
+        name = int(label) if float(label).is_integer() else float(label)
+        out.append((name, {k: np.asarray(v)[rows] for k, v in columns.items()}))
+    return out
+
+
+def check_trial(
+    label: int | float, trial: Trial, model: TaskModel, source: str, time_column: str = "time"
+) -> None:
+    """Refuse a trial whose values a fit would misread (see the module docstring)."""
+    where = f"{source}: trial {label}"
+    time = np.asarray(trial[time_column], dtype=np.float64)
+    if len(time) < 2:
+        raise ValueError(
+            f"{where}, field {time_column!r}: {len(time)} sample(s); expected ≥ 2 per trial"
+        )
+    for name, value in trial.items():
+        bad = ~np.isfinite(np.asarray(value, dtype=np.float64))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            at = f"sample {i}" if name == time_column else f"time {time[i]:.6g} s (sample {i})"
+            raise ValueError(
+                f"{where}, field {name!r}: {value[i]} at {at}; expected finite values "
+                "(fill or cut NaN gaps before fitting)"
+            )
+    steps = np.diff(time)
+    if (steps <= 0).any():
+        i = int(np.flatnonzero(steps <= 0)[0])
+        raise ValueError(
+            f"{where}, field {time_column!r}: time goes from {time[i]:.6g} s to "
+            f"{time[i + 1]:.6g} s at sample {i + 1}; expected strictly increasing times"
+        )
+    _check_constant(where, trial, model)
+    _check_actions(where, trial, model, time)
+    _check_speeds(where, trial, model, time)
+
+
+def _check_constant(where: str, trial: Trial, model: TaskModel) -> None:
+    """The target and θ are fixed within a trial; θ lies in its space."""
+    space = model.theta_space
+    thetas = [n for n in trial if n.startswith(THETA_PREFIX)]
+    for name in [*model.target_names, *thetas]:
+        value = np.asarray(trial[name], dtype=np.float64)
+        if not np.allclose(value, value[0], rtol=1e-6, atol=1e-9):
+            i = int(np.flatnonzero(~np.isclose(value, value[0], rtol=1e-6, atol=1e-9))[0])
+            raise ValueError(
+                f"{where}, field {name!r}: {value[i]:.6g} at sample {i} differs from "
+                f"{value[0]:.6g} at its start; expected one value per trial"
+            )
+    for name in thetas:
+        p = space[name[len(THETA_PREFIX) :]]
+        value = float(trial[name][0])
+        slack = space.tolerance * (p.high - p.low)
+        if not p.low - slack <= value <= p.high + slack:
+            raise ValueError(
+                f"{where}, field {name!r}: {value:.6g}; expected a value in its space "
+                f"[{p.low}, {p.high}] ({p.unit})"
+            )
+
+
+def _check_actions(where: str, trial: Trial, model: TaskModel, time: np.ndarray) -> None:
+    """Actions lie in the task's action set (integers) or its bounds (continuous)."""
+    spec = model.action_spec
+    if isinstance(spec, Categorical):
+        (name,) = model.action_names
+        value = np.asarray(trial[name], dtype=np.float64)
+        bad = (value != np.round(value)) | (value < 0) | (value >= spec.n)
+        expected = f"an action index, an integer in 0..{spec.n - 1}"
+    else:
+        value = np.stack([np.asarray(trial[n], np.float64) for n in model.action_names], -1)
+        low, high = spec.space.low.double().numpy(), spec.space.high.double().numpy()
+        slack = 1e-6 * (high - low)
+        outside = (value < low - slack) | (value > high + slack)
+        bad = outside.any(-1)
+        expected = "a dimensionless control within the action bounds"
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        if isinstance(spec, Categorical):
+            name, v, bounds = model.action_names[0], value[i], ""
+        else:
+            j = int(np.flatnonzero(outside[i])[0])
+            name, v, bounds = model.action_names[j], value[i, j], f" [{low[j]:g}, {high[j]:g}]"
+        raise ValueError(
+            f"{where}, field {name!r}: {v:.6g} at time {time[i]:.6g} s; expected {expected}{bounds}"
+        )
+
+
+def _limit(model: TaskModel, unit: str) -> float | None:
+    """``ABSURD`` times the largest θ bound in ``unit`` (per-step gains counted per second)."""
+    per_step = unit.replace("/s", "/step")
+    highs = [p.high for p in model.theta_space.parameters if p.unit == unit]
+    highs += [p.high / model.dt for p in model.theta_space.parameters if p.unit == per_step]
+    return ABSURD * max(highs) if highs else None
+
+
+def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) -> None:
+    """Velocities, displacements and heading changes within reach of the θ space."""
+    units = dict(zip(model.state_names, model.state_units, strict=True))
+    dt = np.diff(time)
+    rates: list[tuple[str, np.ndarray, np.ndarray, str, str]] = []  # field, |rate|, at, units
+    for name, unit in units.items():
+        if unit in ("distance/s", "rad/s"):
+            rates.append((name, np.abs(trial[name].astype(np.float64)), time, unit, unit))
+    positions = [n for n, u in units.items() if u == "distance"]
+    if positions:
+        xy = np.stack([trial[n].astype(np.float64) for n in positions], -1)
+        speed = np.linalg.norm(np.diff(xy, axis=0), axis=-1) / dt
+        rates.append(("/".join(positions), speed, time[1:], "distance/s", "distance"))
+    for name, rate, at, unit, field_unit in rates:
+        limit = _limit(model, unit)
+        if limit is not None and (rate > limit).any():
+            i = int(np.flatnonzero(rate > limit)[0])
+            kind = "the speed between samples of " if field_unit == "distance" else ""
+            hint = _LIKELY_MISTAKE[field_unit]
+            raise ValueError(
+                f"{where}, field {name!r}: {kind}{rate[i]:.6g} {unit} at time {at[i]:.6g} s; "
+                f"expected below {limit:.6g} {unit} ({ABSURD:g}× the θ space's fastest). "
+                f"A unit mistake? Pass units={{{name.split('/')[0]!r}: {hint!r}}} or similar"
+            )
+    for name, unit in units.items():
+        if unit == "rad":
+            jump = np.abs(np.diff(trial[name].astype(np.float64)))
+            if (jump > math.pi).any():
+                i = int(np.flatnonzero(jump > math.pi)[0])
+                raise ValueError(
+                    f"{where}, field {name!r}: changes by {jump[i]:.6g} rad at time "
+                    f"{time[i + 1]:.6g} s; expected < π per sample (degrees? pass "
+                    f"units={{{name!r}: 'deg'}}; a wrapped angle? np.unwrap it)"
+                )

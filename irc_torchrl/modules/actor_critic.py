@@ -1,0 +1,73 @@
+"""The θ-conditioned actor and critic of Algorithm 1 on continuous-action tasks.
+
+Both start with :class:`~irc_torchrl.envs.belief.BeliefFeatures`, so they read the belief, the
+target, the step and θ straight from the environment's TensorDict; TorchRL's ``DDPGLoss`` can
+then recompute features on next states without any extra plumbing. The paper's shape is three
+hidden layers of 64 units with softplus activations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from tensordict.nn import TensorDictSequential
+from torch import nn
+from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
+
+from irc_torchrl.envs.belief import BeliefFeatures
+from irc_torchrl.envs.model import TaskModel
+
+__all__ = ["ACTIVATIONS", "make_actor", "make_critic"]
+
+#: activations a config may name
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "softplus": nn.Softplus,
+    "relu": nn.ReLU,
+    "tanh": nn.Tanh,
+    "elu": nn.ELU,
+}
+
+
+def _activation(name: str) -> type[nn.Module]:
+    if name not in ACTIVATIONS:
+        raise ValueError(f"activation: expected one of {sorted(ACTIVATIONS)}, got {name!r}")
+    return ACTIVATIONS[name]
+
+
+def _feature_dim(model: TaskModel) -> int:
+    return model.belief_feature_dim + model.theta_space.dim
+
+
+def make_actor(
+    model: TaskModel, hidden: Sequence[int] = (64, 64, 64), activation: str = "softplus"
+) -> TensorDictSequential:
+    """``π(b, θ)``: belief features → MLP → tanh squashed into the action bounds → ``action``."""
+    spec = model.action_spec  # one environment's spec: the bounds without batch dimensions
+    mlp = MLP(
+        in_features=_feature_dim(model),
+        out_features=spec.shape[-1],
+        num_cells=list(hidden),
+        activation_class=_activation(activation),
+    )
+    return TensorDictSequential(
+        BeliefFeatures(model),
+        Actor(mlp, in_keys=["features"], out_keys=["param"]),
+        TanhModule(in_keys=["param"], out_keys=["action"], spec=spec),
+    )
+
+
+def make_critic(
+    model: TaskModel, hidden: Sequence[int] = (64, 64, 64), activation: str = "softplus"
+) -> TensorDictSequential:
+    """``Q(b, a, θ)``: belief features and action → MLP → ``state_action_value``."""
+    mlp = MLP(
+        in_features=_feature_dim(model) + model.action_spec.shape[-1],
+        out_features=1,
+        num_cells=list(hidden),
+        activation_class=_activation(activation),
+    )
+    return TensorDictSequential(
+        BeliefFeatures(model),
+        ValueOperator(mlp, in_keys=["features", "action"]),
+    )
+

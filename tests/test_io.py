@@ -1,0 +1,402 @@
+"""Recorded trials in and out: round trips, resampling, units, and every malformed input refused."""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from irc_torchrl.algorithms.simulate import simulate_agents
+from irc_torchrl.data.io import read_trials, trials_to_columns, write_trials
+from irc_torchrl.envs import Firefly1DModel, Firefly2DModel
+
+
+def _simulated(model, n_agents: int, seed: int) -> TensorDict:
+    """Random-action trials ``[n, T]`` with at least two recorded steps each."""
+    theta = model.theta_space.sample((n_agents,), generator=torch.Generator().manual_seed(seed))
+    trials = simulate_agents(model, None, theta, 4, model.theta_space.default(), seed=seed)
+    trials = trials.reshape(-1, trials.shape[-1])
+    return trials[trials["mask"].sum(-1) >= 2]
+
+
+@pytest.fixture(scope="module")
+def model2d():
+    return Firefly2DModel()
+
+
+@pytest.fixture(scope="module")
+def model1d():
+    return Firefly1DModel()
+
+
+@pytest.fixture(scope="module")
+def trials2d(model2d):
+    return _simulated(model2d, 2, seed=0)
+
+
+@pytest.fixture(scope="module")
+def trials1d(model1d):
+    return _simulated(model1d, 3, seed=1)
+
+
+def _write_raw(columns: dict[str, np.ndarray], path) -> None:
+    """A recording as a user would export it: NPZ arrays or a CSV, one row per step."""
+    if path.suffix == ".npz":
+        np.savez(path, **columns)
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(list(columns))
+        writer.writerows(zip(*(c.tolist() for c in columns.values()), strict=True))
+
+
+def _assert_same(back: TensorDict, trials: TensorDict) -> None:
+    """Equal recorded steps, equal masks, and padding only beyond the longest trial."""
+    steps = back.shape[-1]
+    assert steps == int(trials["mask"].sum(-1).max())
+    assert torch.equal(back["mask"], trials["mask"][:, :steps])
+    mask = back["mask"]
+    for key in ("state", "action", "target", "task_theta"):
+        expected = trials[key][:, :steps][mask].double()
+        assert torch.allclose(back[key][mask].double(), expected, atol=1e-5), key
+    assert back["action"].dtype == trials["action"].dtype
+
+
+# --- round trips -----------------------------------------------------------------------------
+@pytest.mark.parametrize("suffix", [".npz", ".csv", "", ".nwb"])
+def test_round_trip_preserves_values_mask_and_padding(tmp_path, model2d, trials2d, suffix):
+    if suffix == ".nwb":
+        pytest.importorskip("pynwb")
+    path = tmp_path / f"trials{suffix}"
+    write_trials(trials2d, path, model2d)
+    back = read_trials(path, model2d)
+    _assert_same(back, trials2d)
+    steps = (torch.arange(back.shape[-1]) * model2d.dt).expand(back.shape)
+    assert torch.allclose(back["time"][back["mask"]], steps[back["mask"]])
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+def test_round_trip_of_discrete_actions_keeps_integers(tmp_path, model1d, trials1d):
+    path = write_trials(trials1d, tmp_path / "trials.csv", model1d)
+    _assert_same(read_trials(path, model1d), trials1d)
+
+
+def test_missing_theta_columns_take_the_space_default(tmp_path, model2d, trials2d):
+    columns = trials_to_columns(trials2d, model2d)
+    columns = {k: v for k, v in columns.items() if not k.startswith("theta.")}
+    columns["theta.g_v"] = np.full(len(columns["trial"]), 1.5)
+    _write_raw(columns, tmp_path / "t.csv")
+    theta = read_trials(tmp_path / "t.csv", model2d)["task_theta"][0, 0]
+    expected = model2d.theta_space.from_dict({"g_v": 1.5})
+    assert torch.allclose(theta, expected)
+
+
+def test_the_documented_csv_example_reads(tmp_path, model2d):
+    doc = (Path(__file__).parents[1] / "docs" / "trajectory_schema.md").read_text()
+    example = doc.split("```csv\n")[1].split("```")[0]
+    (tmp_path / "example.csv").write_text(example)
+    trials = read_trials(tmp_path / "example.csv", model2d)
+    assert trials.shape == (1, 4)
+    assert trials["task_theta"][0, 0, model2d.theta_space.index("g_v")] == pytest.approx(1.2)
+
+
+# --- resampling and units --------------------------------------------------------------------
+def _oversampled(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each trial recorded twice as often: linear in between, actions held from the last step."""
+    out: dict[str, list[np.ndarray]] = {k: [] for k in columns}
+    for label in np.unique(columns["trial"]):
+        rows = columns["trial"] == label
+        time = columns["time"][rows].astype(np.float64)
+        fine = np.linspace(time[0], time[-1], 2 * len(time) - 1)
+        held = np.searchsorted(time, fine, side="right") - 1
+        for key, values in columns.items():
+            held_key = key in ("trial", "a_v", "a_w")
+            out[key].append(values[rows][held] if held_key else np.interp(fine, time, values[rows]))
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def test_an_oversampled_recording_is_resampled_to_the_model_grid(tmp_path, model2d, trials2d):
+    columns = _oversampled(trials_to_columns(trials2d, model2d))
+    _write_raw(columns, tmp_path / "fine.npz")
+    with pytest.warns(UserWarning, match="resampled every trial from a median time step of 0.05"):
+        back = read_trials(tmp_path / "fine.npz", model2d)
+    _assert_same(back, trials2d)
+
+
+def test_resample_false_keeps_the_recording_and_warns(tmp_path, model2d, trials2d):
+    columns = _oversampled(trials_to_columns(trials2d, model2d))
+    _write_raw(columns, tmp_path / "fine.npz")
+    with pytest.warns(UserWarning, match="kept as recorded"):
+        back = read_trials(tmp_path / "fine.npz", model2d, resample=False)
+    assert back.shape[-1] == 2 * trials2d["mask"].sum(-1).max() - 1
+
+
+def test_a_recording_on_the_model_grid_is_not_resampled(tmp_path, model2d, trials2d):
+    write_trials(trials2d, tmp_path / "t.npz", model2d)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_trials(tmp_path / "t.npz", model2d)
+
+
+def test_units_are_converted_to_the_model_units(tmp_path, model2d, trials2d):
+    columns = trials_to_columns(trials2d, model2d)
+    scale = {"x": 100, "y": 100, "target_x": 100, "target_y": 100, "v": 100}
+    scale.update({"heading": 180 / math.pi, "w": 180 / math.pi, "time": 1000})
+    for key, factor in scale.items():
+        columns[key] = columns[key].astype(np.float64) * factor
+    _write_raw(columns, tmp_path / "lab.csv")
+    units = {"x": "cm", "y": "cm", "target_x": "cm", "target_y": "cm", "v": "cm/s"}
+    units.update({"heading": "deg", "w": "deg/s", "time": "ms"})
+    _assert_same(read_trials(tmp_path / "lab.csv", model2d, units=units), trials2d)
+
+
+@pytest.mark.parametrize(
+    "units, error, match",
+    [
+        ({"x": "inch"}, ValueError, r"unknown unit 'inch' for column 'x'.*m, cm, mm"),
+        ({"heading": "cm"}, ValueError, r"'heading' \(model unit rad\); expected one of rad, deg"),
+        ({"a_v": "m/s"}, KeyError, r"column 'a_v' has no unit.*actions are dimensionless"),
+    ],
+)
+def test_unit_mistakes_in_the_units_argument(tmp_path, model2d, trials2d, units, error, match):
+    path = write_trials(trials2d, tmp_path / "t.npz", model2d)
+    with pytest.raises(error, match=match):
+        read_trials(path, model2d, units=units)
+
+
+def test_custom_time_and_trial_column_names(tmp_path, model2d, trials2d):
+    columns = trials_to_columns(trials2d, model2d, time_column="t_s", trial_column="trial_id")
+    _write_raw(columns, tmp_path / "t.csv")
+    back = read_trials(tmp_path / "t.csv", model2d, time_column="t_s", trial_column="trial_id")
+    _assert_same(back, trials2d)
+
+
+# --- malformed recordings --------------------------------------------------------------------
+def _rows(columns, trial: int) -> np.ndarray:
+    return np.flatnonzero(columns["trial"] == trial)
+
+
+def _set(trial: int, sample: int, field: str, value: float):
+    def corrupt(columns):
+        columns[field] = columns[field].astype(np.float64)
+        columns[field][_rows(columns, trial)[sample]] = value
+        return columns
+
+    return corrupt
+
+
+def _scale(factor: float, *fields: str):
+    def corrupt(columns):
+        for field in fields:
+            columns[field] = columns[field] * factor
+        return columns
+
+    return corrupt
+
+
+def _rename(old: str, new: str | None):
+    def corrupt(columns):
+        value = columns.pop(old)
+        if new is not None:
+            columns[new] = value
+        return columns
+
+    return corrupt
+
+
+def _swap_times(columns):
+    rows = _rows(columns, 2)
+    columns["time"][rows[[1, 2]]] = columns["time"][rows[[2, 1]]]
+    return columns
+
+
+def _repeat_time(columns):
+    rows = _rows(columns, 3)
+    columns["time"][rows[2]] = columns["time"][rows[1]]
+    return columns
+
+
+def _single_sample(columns):
+    keep = np.ones(len(columns["trial"]), dtype=bool)
+    keep[_rows(columns, 2)[1:]] = False
+    return {k: v[keep] for k, v in columns.items()}
+
+
+def _short_column(columns):
+    columns["y"] = columns["y"][:-3]
+    return columns
+
+
+def _theta_column(name: str, value: float):
+    def corrupt(columns):
+        columns[name] = np.full(len(columns["trial"]), value)
+        return columns
+
+    return corrupt
+
+
+def _no_rows(columns):
+    return {k: v[:0] for k, v in columns.items()}
+
+
+def _matrix_column(columns):
+    columns["x"] = np.stack([columns["x"], columns["x"]], -1)
+    return columns
+
+
+# (case, task, format, corruption, error, what the message must say)
+MALFORMED = [
+    ("nan gap in x", "2d", ".csv", _set(1, 2, "x", np.nan), ValueError,
+     r"trial 1, field 'x': nan at time 0\.2 s \(sample 2\); expected finite"),
+    ("inf velocity", "2d", ".npz", _set(0, 1, "v", np.inf), ValueError,
+     r"trial 0, field 'v': inf at time 0\.1 s"),
+    ("nan time", "2d", ".npz", _set(1, 1, "time", np.nan), ValueError,
+     r"trial 1, field 'time': nan at sample 1"),
+    ("time goes back", "2d", ".csv", _swap_times, ValueError,
+     r"trial 2, field 'time': time goes from 0\.2 s to 0\.1 s.*strictly increasing"),
+    ("repeated time", "2d", ".csv", _repeat_time, ValueError,
+     r"trial 3, field 'time': time goes from 0\.1 s to 0\.1 s at sample 2"),
+    ("missing column", "2d", ".csv", _rename("heading", None), KeyError,
+     r"missing column 'heading'; expected columns \['trial', 'time', 'x'"),
+    ("misnamed state column", "2d", ".csv", _rename("heading", "headng"), KeyError,
+     r"missing column 'heading'; column 'headng' looks like a misnamed 'heading'"),
+    ("misnamed target column", "2d", ".npz", _rename("target_x", "targetX"), KeyError,
+     r"column 'targetX' looks like a misnamed 'target_x'"),
+    ("misnamed trial column", "1d", ".csv", _rename("trial", "trials"), KeyError,
+     r"missing column 'trial'; column 'trials' looks like a misnamed 'trial'"),
+    ("targets missing", "2d", ".csv", _rename("target_y", None), KeyError,
+     r"missing column 'target_y'"),
+    ("target missing in a trial", "2d", ".csv", _set(1, 0, "target_y", np.nan), ValueError,
+     r"trial 1, field 'target_y': nan at time 0 s"),
+    ("target moves", "2d", ".npz", _set(0, 2, "target_x", 9.0), ValueError,
+     r"trial 0, field 'target_x': 9 at sample 2 differs from .*expected one value per trial"),
+    ("trial of one sample", "2d", ".csv", _single_sample, ValueError,
+     r"trial 2, field 'time': 1 sample\(s\); expected ≥ 2 per trial"),
+    ("ragged arrays", "2d", ".npz", _short_column, ValueError,
+     r"column 'y' has \d+ values but column 'trial' has \d+; expected one value per time step"),
+    ("2-D array", "2d", ".npz", _matrix_column, ValueError,
+     r"column 'x' has shape \[\d+, 2\]; expected one value per time step"),
+    ("control beyond bounds", "2d", ".csv", _set(1, 1, "a_w", 1.7), ValueError,
+     r"trial 1, field 'a_w': 1\.7 at time 0\.1 s; expected a dimensionless control.*\[-1, 1\]"),
+    ("action index 3", "1d", ".csv", _set(0, 1, "action", 3), ValueError,
+     r"trial 0, field 'action': 3 at time 1 s; expected an action index, an integer in 0\.\.2"),
+    ("fractional action", "1d", ".npz", _set(1, 0, "action", 1.5), ValueError,
+     r"trial 1, field 'action': 1\.5 at time 0 s"),
+    ("velocity in cm/s", "2d", ".csv", _scale(100.0, "v"), ValueError,
+     r"trial \d+, field 'v': .* distance/s .*expected below 16 .*units=\{'v': 'cm/s'\}"),
+    ("angular velocity in deg/s", "2d", ".npz", _scale(180 / math.pi, "w"), ValueError,
+     r"trial \d+, field 'w': .* rad/s .*expected below 14 .*units=\{'w': 'deg/s'\}"),
+    ("position in cm", "2d", ".csv", _scale(100.0, "x", "y"), ValueError,
+     r"trial \d+, field 'x/y': the speed between samples of .*units=\{'x': 'cm'\}"),
+    ("1d position in cm", "1d", ".csv", _scale(100.0, "x"), ValueError,
+     r"trial \d+, field 'x': the speed between samples .*expected below 15"),
+    ("heading in degrees", "2d", ".csv", _scale(180 / math.pi, "heading"), ValueError,
+     r"trial \d+, field 'heading': changes by .*expected < π per sample.*'deg'"),
+    ("theta outside its space", "2d", ".csv", _theta_column("theta.goal_radius", 5.0), ValueError,
+     r"trial 0, field 'theta.goal_radius': 5; expected a value in its space \[0.2, 0.5\]"),
+    ("theta varies", "1d", ".npz", _set(1, 1, "theta.g_a", 0.7), ValueError,
+     r"trial 1, field 'theta.g_a': 0\.7 at sample 1 differs"),
+    ("misnamed theta", "2d", ".csv", _rename("theta.g_v", "theta.gv"), KeyError,
+     r"column 'theta.gv' names no θ parameter; did you mean 'theta.g_v'\?"),
+    ("nan trial number", "2d", ".csv", _set(1, 0, "trial", np.nan), ValueError,
+     r"field 'trial' is nan at row \d+; expected a trial number on every row"),
+    ("no rows", "2d", ".csv", _no_rows, ValueError,
+     r"the file holds no samples; expected one row per time step"),
+    ("empty archive", "2d", ".npz", lambda c: {}, ValueError, r"the file holds no samples"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "task, suffix, corrupt, error, match",
+    [case[1:] for case in MALFORMED],
+    ids=[case[0] for case in MALFORMED],
+)
+def test_malformed_recordings_are_refused_naming_trial_and_field(
+    tmp_path, model1d, model2d, trials1d, trials2d, task, suffix, corrupt, error, match
+):
+    model, trials = (model1d, trials1d) if task == "1d" else (model2d, trials2d)
+    path = tmp_path / f"recording{suffix}"
+    _write_raw(corrupt(trials_to_columns(trials, model)), path)
+    with pytest.raises(error, match=match) as excinfo:
+        read_trials(path, model)
+    assert str(path) in str(excinfo.value)
+
+
+@pytest.mark.parametrize(
+    "name, content, error, match",
+    [
+        ("bad.npz", b"trial,time\n0,0\n", ValueError, r"not an NPZ archive"),
+        ("bad.csv", b"\xff\xfe\x00\x81binary", ValueError, r"not a CSV text file"),
+        ("empty.csv", b"", ValueError, r"the file holds no samples"),
+        ("text.csv", b"trial,time,x\n0,0,1\n0,0.1,left\n", ValueError,
+         r"line 3, column 'x': 'left' is not a number"),
+        ("ragged.csv", b"trial,time,x\n0,0,1\n0,0.1\n", ValueError,
+         r"line 3 has 2 values; expected 3"),
+        ("data.txt", b"1 2 3\n", ValueError, r"unknown format '\.txt'; expected \.npz, \.csv"),
+    ],
+)  # fmt: skip
+def test_files_that_are_not_what_their_suffix_says(tmp_path, model2d, name, content, error, match):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(error, match=match):
+        read_trials(tmp_path / name, model2d)
+
+
+def test_an_npz_of_python_objects_is_refused_without_unpickling(tmp_path, model2d):
+    np.savez(tmp_path / "objects.npz", trial=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="expected numeric arrays"):
+        read_trials(tmp_path / "objects.npz", model2d)
+
+
+def test_a_folder_that_is_not_a_memmap(tmp_path, model2d):
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(ValueError, match="not a TensorDict memmap folder"):
+        read_trials(tmp_path / "folder", model2d)
+
+
+def test_a_missing_file(tmp_path, model2d):
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        read_trials(tmp_path / "nothing.csv", model2d)
+
+
+# --- NWB without pynwb, and atomic writes ----------------------------------------------------
+def test_nwb_without_pynwb_says_how_to_install_it(tmp_path, model2d, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pynwb", None)
+    monkeypatch.delitem(sys.modules, "irc_torchrl.data.nwb", raising=False)
+    (tmp_path / "session.nwb").write_bytes(b"")
+    with pytest.raises(ImportError, match=r"pip install 'irc-torchrl\[nwb\]'"):
+        read_trials(tmp_path / "session.nwb", model2d)
+
+
+def test_a_failing_file_write_leaves_neither_a_partial_nor_a_temp_file(
+    tmp_path, model2d, trials2d, monkeypatch
+):
+    def fail(file, **arrays):
+        file.write(b"PK partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", fail)
+    with pytest.raises(OSError, match="disk full"):
+        write_trials(trials2d, tmp_path / "t.npz", model2d)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failing_folder_write_keeps_the_old_folder(tmp_path, model2d, trials2d, monkeypatch):
+    path = write_trials(trials2d, tmp_path / "held", model2d)
+
+    def fail(self, prefix, **kwargs):
+        (prefix / "state.memmap").write_bytes(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(TensorDict, "memmap", fail)
+    with pytest.raises(OSError, match="disk full"):
+        write_trials(trials2d[:2], path, model2d)
+    assert [p.name for p in tmp_path.iterdir()] == ["held"]
+    monkeypatch.undo()
+    _assert_same(read_trials(path, model2d), trials2d)
