@@ -51,7 +51,8 @@ def main() -> None:
     print(f"{args.agents} agents × {args.trials} trials, {args.threads} thread(s)")
     print(f"batched: one call      {batched_s:8.1f} s")
     print(f"sequential: {args.agents} calls  {sequential_s:8.1f} s")
-    print(f"speed-up batched/sequential: {sequential_s / batched_s:.1f}×; max |θ̂ difference| {gap:.2e}")
+    print(f"speed-up batched/sequential: {sequential_s / batched_s:.1f}×")
+    print(f"max |θ̂ batched − θ̂ sequential|: {gap:.2e}")
 
 
 if __name__ == "__main__":

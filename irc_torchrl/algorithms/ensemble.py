@@ -36,6 +36,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 import irc_torchrl
+from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.checkpoint import load_checkpoint, save_checkpoint
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
@@ -172,8 +173,7 @@ class Firefly2DConfig:
             )
         if d.warmup_policy not in ("pursuit", "random"):
             raise ValueError(
-                f"config: ddpg.warmup_policy must be 'pursuit' or 'random', "
-                f"got {d.warmup_policy!r}"
+                f"config: ddpg.warmup_policy must be 'pursuit' or 'random', got {d.warmup_policy!r}"
             )
         if self.logger not in ("csv", "tensorboard", "none"):
             raise ValueError(
@@ -352,9 +352,7 @@ def train_ensemble(
         config.seed = int(seed)
     config.validate()
     out = Path(out) if out is not None else None
-    torch.set_num_threads(config.threads)
-    torch.set_flush_denormal(config.flush_denormal)
-    with torch.random.fork_rng():
+    with torch_settings(config.threads, config.flush_denormal), torch.random.fork_rng():
         return _train(config, out, resume, progress)
 
 
@@ -399,7 +397,9 @@ def _train(
     frames_per_batch = d.n_envs * d.steps_per_batch
     remaining = max(d.total_frames - frames, 0)
     remaining = math.ceil(remaining / frames_per_batch) * frames_per_batch
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(d.buffer_size), batch_size=d.batch_size)
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(d.buffer_size), batch_size=d.batch_size
+    )
     logger = _Logger(config.logger, out)
     bar = _progress_bar(progress, d.total_frames, frames)
     cpu0 = time.process_time() - (history[-1]["cpu_s"] if history else 0.0)
@@ -446,7 +446,9 @@ def _train(
             best = {**metrics, "frames": frames, "updates": updates}
             best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
         if bar is not None:
-            bar.set_postfix(success=f"{metrics['success_rate']:.0%}", best=f"{best['success_rate']:.0%}")
+            bar.set_postfix(
+                success=f"{metrics['success_rate']:.0%}", best=f"{best['success_rate']:.0%}"
+            )
 
     warmup = min(d.warmup_frames, d.buffer_size)
     if resume is None and d.warmup_policy == "pursuit":
@@ -513,7 +515,9 @@ def _train(
                 "theta_names": model.theta_space.names,
             },
         )
-    return TrainResult(actor, critic, model, config, history, best, frames, updates, checkpoint_path)
+    return TrainResult(
+        actor, critic, model, config, history, best, frames, updates, checkpoint_path
+    )
 
 
 def _make_collector(

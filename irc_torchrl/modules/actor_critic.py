@@ -70,4 +70,3 @@ def make_critic(
         BeliefFeatures(model),
         ValueOperator(mlp, in_keys=["features", "action"]),
     )
-

@@ -1,0 +1,165 @@
+"""Algorithm 1 on the 2D task: time to 80%/90% success, updates/s, specialists, pursuit, TD3.
+
+Usage::
+
+    python benchmarks/bench_ensemble.py [--quick] [--out runs/bench_ensemble]
+
+For each seed (3, or 1 with ``--quick``) trains the default config and reads the CPU time at
+which success over the fixed θ grid first reached 80% and 90% (median over seeds), the
+updates per second, and the CPU time to 95% of the final evaluation return. Then trains a
+specialist (every θ parameter fixed) at 5 θ spread over the prior with the same frame budget
+and compares returns with the ensemble and with the belief-pursuit controller at those θ.
+When ``stable_baselines3`` imports, TD3 on the gymnasium adapter gets the same CPU time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from irc_torchrl.algorithms.ensemble import evaluate_policy, make_model, theta_grid, train_ensemble
+from irc_torchrl.config import load_firefly2d_config
+from irc_torchrl.data.files import write_json
+from irc_torchrl.modules.pursuit import BeliefPursuit
+
+
+def first_time(history: list[dict], key: str, level: float) -> float | None:
+    """CPU seconds of training at the first evaluation with ``key`` ≥ ``level``."""
+    return next((row["train_cpu_s"] for row in history if row[key] >= level), None)
+
+
+def ensemble_runs(seeds: list[int], overrides: list[str], out: Path) -> list[dict]:
+    rows = []
+    for seed in seeds:
+        config = load_firefly2d_config(overrides=overrides)
+        result = train_ensemble(config, out=out / f"seed_{seed}", progress=False, seed=seed)
+        history = result.history
+        final = history[-1]["mean_return"]
+        rows.append(
+            {
+                "seed": seed,
+                "t80_s": first_time(history, "success_rate", 0.8),
+                "t90_s": first_time(history, "success_rate", 0.9),
+                "t95_return_s": next(
+                    (r["train_cpu_s"] for r in history if r["mean_return"] >= 0.95 * final), None
+                ),
+                "updates_per_s": result.updates / max(history[-1]["train_cpu_s"], 1e-9),
+                "best": result.best,
+                "history": history,
+                "actor": result.actor,
+                "model": result.model,
+            }
+        )
+    return rows
+
+
+def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> list[dict]:
+    """Specialist vs ensemble vs pursuit at ``n`` θ from a Latin hypercube over the prior."""
+    base = load_firefly2d_config(overrides=overrides)
+    model = make_model(base)
+    thetas = theta_grid(model.theta_space, n, seed=777)
+    rows = []
+    for i, theta in enumerate(thetas):
+        values = model.theta_space.to_dict(theta)
+        fixed = f"theta_fixed={values}"
+        result = train_ensemble(
+            load_firefly2d_config(overrides=[*overrides, fixed]),
+            out=out / f"specialist_{i}",
+            progress=False,
+        )
+        score = {
+            name: evaluate_policy(model, policy, theta[None], trials, seed=4242)["mean_return"]
+            for name, policy in (
+                ("ensemble", actor),
+                ("specialist", result.actor),
+                ("pursuit", BeliefPursuit(model)),
+            )
+        }
+        rows.append({"theta": values, **score, "ratio": score["ensemble"] / score["specialist"]})
+    return rows
+
+
+def td3_run(cpu_budget: float, seed: int, model, thetas: torch.Tensor) -> dict | None:
+    """TD3 (stable-baselines3) on the gymnasium adapter for ``cpu_budget`` CPU seconds."""
+    try:
+        from stable_baselines3 import TD3
+        from stable_baselines3.common.callbacks import BaseCallback
+    except ImportError:
+        return None
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+
+    from irc_torchrl.envs.belief import BeliefFeatures
+    from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
+
+    class Budget(BaseCallback):
+        def _on_step(self) -> bool:
+            return time.process_time() - start < cpu_budget
+
+    start = time.process_time()
+    agent = TD3("MlpPolicy", Firefly2DGymEnv(model=model), seed=seed, verbose=0)
+    agent.learn(total_timesteps=10**9, callback=Budget())
+    used = time.process_time() - start
+    act = TensorDictModule(
+        lambda f: agent.actor(f).clamp(-1, 1), in_keys=["features"], out_keys=["action"]
+    )
+    metrics = evaluate_policy(model, TensorDictSequential(BeliefFeatures(model), act), thetas, 8)
+    return {"cpu_s": used, "steps": agent.num_timesteps, **metrics}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one seed, 5 specialists")
+    parser.add_argument("--out", default="runs/bench_ensemble")
+    parser.add_argument("overrides", nargs="*", metavar="key=value")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    seeds = [0] if args.quick else [0, 1, 2]
+    runs = ensemble_runs(seeds, args.overrides, out)
+    med = {
+        key: statistics.median([r[key] for r in runs if r[key] is not None] or [float("nan")])
+        for key in ("t80_s", "t90_s", "t95_return_s", "updates_per_s")
+    }
+    print("ensemble (CPU seconds of training, evaluation excluded)")
+    for r in runs:
+        print(
+            f"  seed {r['seed']}: t80 {r['t80_s']}  t90 {r['t90_s']}  "
+            f"t95%return {r['t95_return_s']}  updates/s {r['updates_per_s']:.1f}  "
+            f"best success {r['best']['success_rate']:.1%}"
+        )
+    print(f"  median: {med}")
+    rows = specialists(runs[0]["actor"], args.overrides, 5, 64, out)
+    print(f"{'θ':>4} {'ensemble':>9} {'specialist':>10} {'pursuit':>8} {'ratio':>6}")
+    for i, row in enumerate(rows):
+        print(
+            f"{i:>4} {row['ensemble']:>9.2f} {row['specialist']:>10.2f} "
+            f"{row['pursuit']:>8.2f} {row['ratio']:>6.2f}"
+        )
+    model = runs[0]["model"]
+    budget = runs[0]["history"][-1]["train_cpu_s"]
+    td3 = td3_run(budget, 0, model, theta_grid(model.theta_space, 64, 12345))
+    if td3:
+        print(
+            f"TD3 after {td3['cpu_s']:.0f} CPU s ({td3['steps']} steps): success "
+            f"{td3['success_rate']:.1%}, return {td3['mean_return']:.2f}; ensemble at the "
+            f"same budget: success {runs[0]['history'][-1]['success_rate']:.1%}"
+        )
+    else:
+        print("TD3: stable_baselines3 is not installed; skipped")
+    write_json(
+        out / "summary.json",
+        {
+            "median": med,
+            "runs": [{k: v for k, v in r.items() if k not in ("actor", "model")} for r in runs],
+            "specialists": rows,
+            "td3": {k: v for k, v in td3.items() if not k.startswith("per_theta")} if td3 else None,
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,141 @@
+"""Algorithm 1 on the 2D task: networks, determinism, target updates, evaluation, pursuit floor."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from tensordict import TensorDict
+from test_checkpoint import tiny
+from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+
+from irc_torchrl.algorithms.ensemble import (
+    Firefly2DConfig,
+    evaluate_policy,
+    make_model,
+    make_train_env,
+    theta_grid,
+    train_ensemble,
+)
+from irc_torchrl.config import config_to_dict, load_firefly2d_config
+from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.modules.actor_critic import make_actor, make_critic
+from irc_torchrl.modules.pursuit import BeliefPursuit
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_yaml_equals_the_embedded_default():
+    assert load_firefly2d_config(ROOT / "configs" / "firefly2d.yaml") == Firefly2DConfig()
+    shipped = yaml.safe_load((ROOT / "configs" / "firefly2d.yaml").read_text())
+    assert shipped == config_to_dict(Firefly2DConfig())
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("ddpg.gamma=1.5", "ddpg.gamma must lie in"),
+        ("ddpg.n_envs=0", "ddpg.n_envs must be positive"),
+        ("ddpg.activation=swish", "ddpg.activation must be one of"),
+        ("theta_fixed={g_x: 1.0}", "theta_fixed: unknown θ parameter 'g_x'"),
+        ("theta_fixed={g_v: 9.0}", "theta_fixed: fixed g_v=9.0 outside its range"),
+        ("ddpg.n_env=3", "unknown key 'ddpg.n_env'; valid keys: .*ddpg.n_envs"),
+    ],
+)
+def test_bad_config_is_a_clear_error(override, message):
+    with pytest.raises((KeyError, ValueError), match=message):
+        load_firefly2d_config(overrides=[override])
+
+
+def test_actor_respects_action_bounds_and_reads_theta():
+    model = Firefly2DModel()
+    torch.manual_seed(0)
+    actor = make_actor(model)
+    env = make_train_env(model, 64, seed=0)
+    td = env.reset()
+    with torch.no_grad():
+        for layer in actor.modules():
+            if isinstance(layer, torch.nn.Linear):
+                layer.weight.mul_(50)  # push the pre-tanh output far outside [-1, 1]
+        action = actor(td)["action"]
+    assert action.shape == (64, 2)
+    assert action.abs().max() <= 1.0
+    assert td["features"].shape[-1] == model.belief_feature_dim + model.theta_space.dim
+    other = td.clone()
+    other["theta"] = model.theta_space.sample((64,), generator=torch.Generator().manual_seed(1))
+    assert not torch.allclose(actor(other)["action"], action)
+
+
+def test_ddpg_loss_and_soft_update_move_the_target_networks():
+    model = Firefly2DModel()
+    torch.manual_seed(0)
+    actor, critic = make_actor(model, (16,)), make_critic(model, (16,))
+    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=0.9)
+    update = SoftUpdate(loss, tau=0.5)
+    env = make_train_env(model, 32, seed=0)
+    batch = env.rollout(3, actor, break_when_any_done=False).reshape(-1)
+    before = loss.target_value_network_params.clone()
+    optimiser = torch.optim.Adam(loss.parameters(), lr=1e-2)
+    losses = loss(batch)
+    (losses["loss_actor"] + losses["loss_value"]).backward()
+    optimiser.step()
+    update.step()
+    after = loss.target_value_network_params
+    moved = [not torch.equal(before[k], after[k]) for k in before.keys(True, True)]
+    assert any(moved)
+    assert isinstance(losses, TensorDict)
+
+
+def test_tiny_training_is_deterministic_for_a_seed():
+    runs = [train_ensemble(tiny(), progress=False, seed=5) for _ in range(2)]
+    assert runs[0].updates > 0
+    for name, value in runs[0].critic.state_dict().items():
+        assert torch.equal(value, runs[1].critic.state_dict()[name]), name
+    assert runs[0].history == [
+        {
+            **row,
+            "cpu_s": runs[0].history[i]["cpu_s"],
+            "train_cpu_s": runs[0].history[i]["train_cpu_s"],
+        }
+        for i, row in enumerate(runs[1].history)
+    ]
+    other = train_ensemble(tiny(), progress=False, seed=6)
+    assert not all(
+        torch.equal(v, other.critic.state_dict()[k]) for k, v in runs[0].critic.state_dict().items()
+    )
+
+
+def test_evaluation_reports_per_theta_success_on_a_fixed_grid():
+    model = Firefly2DModel()
+    grid = theta_grid(model.theta_space, 6, seed=0)
+    assert torch.equal(grid, theta_grid(model.theta_space, 6, seed=0))
+    model.theta_space.validate(grid)
+    free = [model.theta_space.index(n) for n in model.theta_space.free_names]
+    strata = (
+        (grid[:, free] - model.theta_space.low()[free])
+        / (model.theta_space.high()[free] - model.theta_space.low()[free])
+        * 6
+    ).floor()
+    assert all(sorted(col.tolist()) == list(range(6)) for col in strata.T)  # Latin hypercube
+    metrics = evaluate_policy(model, BeliefPursuit(model), grid, trials_per_theta=3, seed=1)
+    assert len(metrics["per_theta_success"]) == 6
+    assert 0 <= metrics["success_rate"] <= 1
+    assert 1 <= metrics["mean_length"] <= model.max_steps
+
+
+def test_pursuit_reaches_the_target_without_noise():
+    model = Firefly2DModel()
+    quiet = {"sigma_v": 0.0, "sigma_w": 0.0, "obs_sigma_v": 0.0, "obs_sigma_w": 0.0}
+    theta = model.theta_space.from_dict(quiet)
+    metrics = evaluate_policy(model, BeliefPursuit(model), theta[None], trials_per_theta=32, seed=0)
+    assert metrics["success_rate"] >= 0.95
+    assert metrics["mean_return"] > 8
+
+
+def test_specialist_fixes_every_parameter():
+    space = make_model(Firefly2DConfig()).theta_space
+    config = tiny("theta_fixed=" + str({n: space[n].default for n in space.names}))
+    assert make_model(config).theta_space.free_names == []
