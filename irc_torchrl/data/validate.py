@@ -14,9 +14,10 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
+import torch
 from torchrl.data import Categorical
 
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, action_in_spec
 
 __all__ = [
     "ABSURD",
@@ -174,25 +175,20 @@ def _check_constant(where: str, trial: Trial, model: TaskModel) -> None:
 def _check_actions(where: str, trial: Trial, model: TaskModel, time: np.ndarray) -> None:
     """Actions lie in the task's action set (integers) or its bounds (continuous)."""
     spec = model.action_spec
-    if isinstance(spec, Categorical):
-        (name,) = model.action_names
-        value = np.asarray(trial[name], dtype=np.float64)
-        bad = (value != np.round(value)) | (value < 0) | (value >= spec.n)
-        expected = f"an action index, an integer in 0..{spec.n - 1}"
-    else:
-        value = np.stack([np.asarray(trial[n], np.float64) for n in model.action_names], -1)
-        low, high = spec.space.low.double().numpy(), spec.space.high.double().numpy()
-        slack = 1e-6 * (high - low)
-        outside = (value < low - slack) | (value > high + slack)
-        bad = outside.any(-1)
-        expected = "a dimensionless control within the action bounds"
+    discrete = isinstance(spec, Categorical)
+    value = np.stack([np.asarray(trial[n], np.float64) for n in model.action_names], -1)
+    action = torch.from_numpy(value[..., 0] if discrete else value)
+    bad = ~action_in_spec(spec, action, slack=0.0 if discrete else 1e-6).numpy()
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        if isinstance(spec, Categorical):
-            name, v, bounds = model.action_names[0], value[i], ""
+        if discrete:
+            name, v, bounds = model.action_names[0], value[i, 0], ""
+            expected = f"an action index, an integer in 0..{spec.n - 1}"
         else:
-            j = int(np.flatnonzero(outside[i])[0])
+            low, high = spec.space.low.double().numpy(), spec.space.high.double().numpy()
+            j = int(np.argmax(np.maximum(low - value[i], value[i] - high)))  # the worst component
             name, v, bounds = model.action_names[j], value[i, j], f" [{low[j]:g}, {high[j]:g}]"
+            expected = "a dimensionless control within the action bounds"
         raise ValueError(
             f"{where}, field {name!r}: {v:.6g} at time {time[i]:.6g} s; expected {expected}{bounds}"
         )

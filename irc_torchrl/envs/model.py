@@ -146,8 +146,11 @@ def _batched_jacobian(fn, state: torch.Tensor, *args: torch.Tensor) -> torch.Ten
     return jac.reshape(*batch, *jac.shape[1:])
 
 
-def action_in_spec(spec: TensorSpec, action: torch.Tensor) -> torch.Tensor:
-    """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous)."""
+def action_in_spec(spec: TensorSpec, action: torch.Tensor, slack: float = 0.0) -> torch.Tensor:
+    """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous).
+
+    ``slack`` (a fraction of each bound's range) tolerates round-off in recorded files.
+    """
     if isinstance(spec, Categorical):
         integral = (
             action == action.round()
@@ -156,4 +159,5 @@ def action_in_spec(spec: TensorSpec, action: torch.Tensor) -> torch.Tensor:
         )
         return integral & (action >= 0) & (action < spec.n)
     low, high = spec.space.low.to(action.device), spec.space.high.to(action.device)
-    return ((action >= low) & (action <= high)).all(-1)
+    margin = slack * (high - low)
+    return ((action >= low - margin) & (action <= high + margin)).all(-1)
