@@ -17,6 +17,8 @@ TINY = [
     "ddpg.updates_per_batch=2",
     "ddpg.total_frames=1280",
     "ddpg.warmup_frames=256",
+    "ddpg.clone_updates=10",
+    "ddpg.critic_updates=10",
     "ddpg.batch_size=64",
     "ddpg.hidden=[16, 16]",
     "evaluation.n_theta=4",
@@ -102,9 +104,12 @@ def test_resume_restores_state_and_is_deterministic(tmp_path, trained):
     first = train_ensemble(tiny("ddpg.total_frames=640"), out=tmp_path / "a", progress=False)
     ckpt = tmp_path / "a" / "checkpoint.pt"
     runs = [
-        train_ensemble(tiny(), out=tmp_path / name, resume=ckpt, progress=False) for name in "bc"
+        train_ensemble(
+            tiny("ddpg.total_frames=1920"), out=tmp_path / name, resume=ckpt, progress=False
+        )
+        for name in "bc"
     ]
-    assert runs[0].frames == runs[1].frames >= 1280
+    assert runs[0].frames == runs[1].frames >= 1920
     assert runs[0].updates > first.updates
     for name, value in runs[0].critic.state_dict().items():
         assert torch.equal(value, runs[1].critic.state_dict()[name])

@@ -139,3 +139,35 @@ def test_specialist_fixes_every_parameter():
     space = make_model(Firefly2DConfig()).theta_space
     config = tiny("theta_fixed=" + str({n: space[n].default for n in space.names}))
     assert make_model(config).theta_space.free_names == []
+
+
+def test_n_step_transitions_end_where_their_window_reaches_a_stop():
+    """A window that reaches the end of a trial must not bootstrap from the terminal state."""
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+    from torchrl.envs import MultiStepTransform
+
+    from irc_torchrl.algorithms.ensemble import _extend
+
+    steps = 10
+    stop = torch.zeros(1, steps, 1, dtype=torch.bool)
+    stop[0, 3] = True  # a trial ends at step 3, the next runs on
+    batch = TensorDict(
+        {
+            "observation": torch.arange(steps).float().view(1, steps, 1),
+            "next": {
+                "observation": torch.arange(1, steps + 1).float().view(1, steps, 1),
+                "reward": torch.ones(1, steps, 1),
+                "done": stop.clone(),
+                "terminated": stop.clone(),
+                "truncated": torch.zeros_like(stop),
+            },
+        },
+        batch_size=[1, steps],
+    )
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+    _extend(buffer, MultiStepTransform(3, 0.9), batch)
+    data = buffer[:]
+    terminated = data["next", "terminated"].squeeze(-1).tolist()
+    # windows of 3 starting at steps 1, 2 and 3 reach the stop; step 0's ends at step 2
+    assert terminated[:5] == [False, True, True, True, False]
+    assert data["steps_to_next_obs"].squeeze(-1).tolist()[:5] == [3, 3, 2, 1, 3]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
@@ -30,7 +31,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.envs import Compose, EnvBase, TransformedEnv
+from torchrl.envs import Compose, EnvBase, MultiStepTransform, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
@@ -66,13 +67,13 @@ class DDPGConfig:
     """Settings of the DDPG learner in :func:`train_ensemble`."""
 
     #: parallel environments, each with its own θ
-    n_envs: int = 256
+    n_envs: int = 64
     #: batched env steps per collector batch; frames per batch = n_envs × steps_per_batch
     steps_per_batch: int = 4
     #: gradient updates per collector batch (one per batched step by default)
     updates_per_batch: int = 4
     #: training length, in env frames (one frame = one step of one environment)
-    total_frames: int = 1_536_000
+    total_frames: int = 768_000
     #: frames collected before the first update: by ``warmup_policy`` at the start of a run,
     #: by the current policy after a resume (the replay buffer is not checkpointed)
     warmup_frames: int = 10_240
@@ -81,20 +82,28 @@ class DDPGConfig:
     #: target, so the sparse stop reward is never seen); "random": uniform actions
     warmup_policy: str = "pursuit"
     warmup_sigma: float = 0.3
+    #: with the pursuit warm-up: gradient steps of behaviour cloning (the actor imitates the
+    #: controller on the warm-up beliefs), then of critic-only learning, before DDPG proper;
+    #: DDPG then refines a policy that already reaches the goal instead of discovering it
+    clone_updates: int = 2000
+    critic_updates: int = 1000
     buffer_size: int = 200_000
     batch_size: int = 512
     hidden: list[int] = field(default_factory=lambda: [64, 64, 64])
     activation: str = "softplus"
-    lr_actor: float = 1e-3
+    lr_actor: float = 1e-4
     lr_critic: float = 1e-3
     #: gradient norm clip of each network (0 disables)
     max_grad_norm: float = 10.0
     gamma: float = 0.98
+    #: n-step TD targets (TorchRL's MultiStepTransform): the sparse stop reward reaches the
+    #: start of a trial n times sooner than with one-step targets
+    n_steps: int = 5
     tau: float = 0.005
     #: std of the additive Gaussian exploration noise, annealed linearly over anneal_frames
-    sigma_init: float = 0.4
+    sigma_init: float = 0.15
     sigma_end: float = 0.05
-    anneal_frames: int = 1_000_000
+    anneal_frames: int = 512_000
     #: collector processes (1: in this process; more: a MultiSyncCollector)
     collector_workers: int = 1
 
@@ -147,6 +156,9 @@ class Firefly2DConfig:
             "ddpg.batch_size": d.batch_size,
             "ddpg.anneal_frames": d.anneal_frames,
             "ddpg.collector_workers": d.collector_workers,
+            "ddpg.n_steps": d.n_steps,
+            "ddpg.clone_updates + 1": d.clone_updates + 1,
+            "ddpg.critic_updates + 1": d.critic_updates + 1,
             "ddpg.lr_actor": d.lr_actor,
             "ddpg.lr_critic": d.lr_critic,
             "evaluation.n_theta": e.n_theta,
@@ -459,19 +471,22 @@ def _train(
             ),
         )
         warmup_collector = _make_collector(config, model, seeding, env_seed + 1, warmup, False)
+        warmup_steps = MultiStepTransform(d.n_steps, d.gamma)
         for batch in warmup_collector:
-            buffer.extend(batch.reshape(-1))
             frames += batch.numel()
+            _extend(buffer, warmup_steps, batch)
         warmup_collector.shutdown()
+        _pretrain(loss, seeding[0], buffer, opt_actor, opt_critic, target_update, d)
     random_start = resume is None and d.warmup_policy == "random"
     collector = _make_collector(config, model, explore, env_seed, remaining, random_start)
+    multi_step = MultiStepTransform(d.n_steps, d.gamma)
     for batch in collector if remaining else ():
-        batch = batch.reshape(-1).exclude("features", "param", ("next", "features"))
-        buffer.extend(batch)
-        frames += batch.numel()
-        noise.step(batch.numel())
+        new_frames = batch.numel()
+        frames += new_frames
+        _extend(buffer, multi_step, batch)
+        noise.step(new_frames)
         if bar is not None:
-            bar.update(batch.numel())
+            bar.update(new_frames)
         if len(buffer) < warmup:
             continue
         for _ in range(d.updates_per_batch):
@@ -518,6 +533,56 @@ def _train(
     return TrainResult(
         actor, critic, model, config, history, best, frames, updates, checkpoint_path
     )
+
+
+def _pretrain(
+    loss: DDPGLoss,
+    teacher: TensorDictModuleBase,
+    buffer: TensorDictReplayBuffer,
+    opt_actor: torch.optim.Optimizer,
+    opt_critic: torch.optim.Optimizer,
+    target_update: SoftUpdate,
+    d: DDPGConfig,
+) -> None:
+    """Clone ``teacher`` into the actor, then fit the critic to that actor, on the buffer."""
+    actor = loss.actor_network
+    for _ in range(d.clone_updates):
+        batch = buffer.sample()
+        # the teacher saturates at the bounds, where tanh has no finite preimage
+        target = teacher(batch.clone())["action"].clamp(-0.97, 0.97)
+        clone_loss = (actor(batch)["action"] - target).pow(2).mean()
+        clone_loss.backward()
+        opt_actor.step()
+        opt_actor.zero_grad()
+    with warnings.catch_warnings():  # re-initialising the targets on purpose: they lag the clone
+        warnings.simplefilter("ignore", UserWarning)
+        target_update.init_()
+    for _ in range(d.critic_updates):
+        loss.loss_value(buffer.sample())[0].backward()
+        opt_critic.step()
+        opt_critic.zero_grad()
+        target_update.step()
+
+
+def _extend(
+    buffer: TensorDictReplayBuffer, multi_step: MultiStepTransform, batch: TensorDictBase
+) -> None:
+    """Store a collector batch ``[n_envs, steps]`` as n-step transitions (features recomputed).
+
+    ``MultiStepTransform`` moves ``next`` to the end of each window but leaves the end-of-trial
+    flags at the window's first step, so a window that reaches a stop would bootstrap from the
+    terminal state (values then grow past any reward). The flags ride along under other names
+    and are put back from the window's end.
+    """
+    batch = batch.exclude("features", "param", ("next", "features"))
+    for key in ("done", "terminated", "truncated"):
+        batch["next", f"window_{key}"] = batch["next", key]
+    batch = multi_step.inv(batch)
+    if batch is None:  # the first n_steps frames of each env wait for their future
+        return
+    for key in ("done", "terminated", "truncated"):
+        batch["next", key] = batch["next"].pop(f"window_{key}")
+    buffer.extend(batch.reshape(-1))
 
 
 def _make_collector(

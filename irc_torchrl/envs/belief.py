@@ -16,7 +16,15 @@ from torchrl.envs import Transform
 
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["ekf_predict", "ekf_update", "ekf_step", "EKFBelief", "BeliefReward", "BeliefFeatures"]
+__all__ = [
+    "ekf_gain",
+    "ekf_predict",
+    "ekf_update",
+    "ekf_step",
+    "EKFBelief",
+    "BeliefReward",
+    "BeliefFeatures",
+]
 
 BELIEF_MEAN = ("belief", "mean")
 BELIEF_COV = ("belief", "cov")
@@ -40,6 +48,20 @@ def ekf_predict(
     return mean_next, _symmetrise(cov_next)
 
 
+def ekf_gain(
+    model: TaskModel, mean: torch.Tensor, cov: torch.Tensor, theta: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The Kalman gain ``K`` of an update at the predicted belief, with ``H`` and ``R``."""
+    jac = model.observation_jacobian(mean, theta)
+    noise = model.observation_cov(mean, theta)
+    cross = jac @ cov  # H Σ
+    innovation_cov = _symmetrise(cross @ jac.transpose(-1, -2) + noise)
+    # K = Σ Hᵀ S⁻¹ = (S⁻¹ H Σ)ᵀ, solved rather than inverted (a batched LU solve of the small S
+    # is several times faster on CPU than cholesky + cholesky_solve, and S ⪰ R ≻ 0 is well posed)
+    gain = torch.linalg.solve(innovation_cov, cross).transpose(-1, -2)
+    return gain, jac, noise
+
+
 def ekf_update(
     model: TaskModel,
     mean: torch.Tensor,
@@ -50,13 +72,7 @@ def ekf_update(
     """Condition the belief on an observation, with the Joseph form so ``Σ`` stays PD."""
     if model.observation_dim == 0:
         return mean, cov
-    jac = model.observation_jacobian(mean, theta)
-    noise = model.observation_cov(mean, theta)
-    cross = jac @ cov  # H Σ
-    innovation_cov = _symmetrise(cross @ jac.transpose(-1, -2) + noise)
-    # K = Σ Hᵀ S⁻¹ = (S⁻¹ H Σ)ᵀ, solved rather than inverted (a batched LU solve of the small S
-    # is several times faster on CPU than cholesky + cholesky_solve, and S ⪰ R ≻ 0 is well posed)
-    gain = torch.linalg.solve(innovation_cov, cross).transpose(-1, -2)
+    gain, jac, noise = ekf_gain(model, mean, cov, theta)
     residual = observation - model.observe(mean, theta)
     mean_next = mean + (gain @ residual.unsqueeze(-1)).squeeze(-1)
     eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import torch
 from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
@@ -17,7 +18,7 @@ from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
 from irc_torchrl.envs.belief import BeliefFeatures
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["ACTIVATIONS", "make_actor", "make_critic"]
+__all__ = ["ACTIVATIONS", "FeaturePolicy", "make_actor", "make_critic"]
 
 #: activations a config may name
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -70,3 +71,27 @@ def make_critic(
         BeliefFeatures(model),
         ValueOperator(mlp, in_keys=["features", "action"]),
     )
+
+
+class FeaturePolicy(nn.Module):
+    """The tensor path of a :func:`make_actor` actor: features ``[*B, df]`` → action ``[*B, da]``.
+
+    The inverse objective differentiates the policy in its input (the belief), so it needs the
+    network without the TensorDict plumbing; the weights are the actor's own (shared), cast to
+    the input's dtype on the fly.
+    """
+
+    def __init__(self, actor: TensorDictSequential) -> None:
+        super().__init__()
+        _, net, squash = actor.module
+        self.mlp = net.module
+        bounds = squash.spec[squash.out_keys[0]].space
+        self.register_buffer("low", torch.as_tensor(bounds.low, dtype=torch.float32))
+        self.register_buffer("high", torch.as_tensor(bounds.high, dtype=torch.float32))
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        dtype = features.dtype  # the inverse runs in float64; the actor's weights stay as they are
+        weights = {k: v.to(dtype) for k, v in self.mlp.named_parameters()}
+        half = (self.high - self.low).to(dtype) / 2
+        squashed = torch.tanh(torch.func.functional_call(self.mlp, weights, (features,)))
+        return self.low.to(dtype) + half + half * squashed

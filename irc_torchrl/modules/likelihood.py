@@ -82,3 +82,60 @@ class CensoredGaussianActionModel(nn.Module):
         logp = torch.where(action <= low + self.atol, below, density)
         logp = torch.where(action >= high - self.atol, above, logp)
         return logp.sum(-1)
+
+    def assimilate(
+        self,
+        mean: torch.Tensor,
+        jacobian: torch.Tensor,
+        cov: torch.Tensor,
+        action: torch.Tensor,
+        nuisance: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Score an action whose policy input is uncertain, and condition that input on it.
+
+        The policy's input ``z ~ N(ẑ, cov)`` is unseen; linearised, the action is
+        ``mean + jacobian (z - ẑ) + noise``, clipped. Each action dimension is one scalar
+        observation of ``z`` (the motor noise is independent across dimensions): interior
+        values update ``z`` as a Kalman step, clipped ones as a censored (Tobit) observation
+        whose posterior moments are matched.
+
+        Args:
+            mean: the policy's output at ``ẑ``, ``[*B, da]``.
+            jacobian: its derivative in ``z``, ``[*B, da, dz]``.
+            cov: the covariance of ``z``, ``[*B, dz, dz]``.
+            action: the recorded action, ``[*B, da]``.
+            nuisance: log motor-noise standard deviations, ``[*B, da]``.
+
+        Returns:
+            ``log p(action)`` ``[*B]``, the shift of ``z``'s mean ``[*B, dz]`` and its
+            covariance ``[*B, dz, dz]`` given the action.
+        """
+        low, high = self.low.to(mean.dtype), self.high.to(mean.dtype)
+        noise_var = (2 * nuisance).exp()
+        shift = torch.zeros_like(cov[..., 0])
+        logp = torch.zeros_like(mean[..., 0])
+        for i in range(mean.shape[-1]):
+            j = jacobian[..., i, :]
+            cov_j = (cov @ j.unsqueeze(-1)).squeeze(-1)  # Σ jᵀ
+            var = (j * cov_j).sum(-1) + noise_var[..., i]
+            std = var.sqrt()
+            m = mean[..., i] + (j * shift).sum(-1)
+            a = action[..., i]
+            # interior: a Gaussian observation
+            z = (a - m) / std
+            interior = -0.5 * z**2 - std.log() - 0.5 * math.log(2 * math.pi)
+            # clipped: P(u beyond the bound), and the moments of u given that it is beyond
+            upper = a >= high[i] - self.atol
+            lower = a <= low[i] + self.atol
+            sign = torch.where(lower, -torch.ones_like(m), torch.ones_like(m))
+            alpha = torch.where(lower, m - low[i], high[i] - m) / std
+            tail = torch.special.log_ndtr(-alpha)
+            ratio = torch.exp(-0.5 * alpha**2 - 0.5 * math.log(2 * math.pi) - tail)
+            clipped = upper | lower
+            logp = logp + torch.where(clipped, tail, interior)
+            moved = torch.where(clipped, sign * std * ratio, a - m)
+            shrink = torch.where(clipped, ratio * (ratio - alpha), torch.ones_like(m))
+            shift = shift + cov_j * (moved / var).unsqueeze(-1)
+            cov = cov - cov_j.unsqueeze(-1) * cov_j.unsqueeze(-2) * (shrink / var)[..., None, None]
+            cov = 0.5 * (cov + cov.transpose(-1, -2))
+        return logp, shift, cov

@@ -18,9 +18,13 @@ from torchrl.objectives import LossModule
 
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.objectives.marginal import marginal_filter
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["InverseRationalLoss"]
+__all__ = ["METHODS", "InverseRationalLoss"]
+
+#: the estimators: the paper's hard E-step, and the agent's observations integrated out
+METHODS = ("map", "marginal")
 
 
 class InverseRationalLoss(LossModule):
@@ -37,6 +41,9 @@ class InverseRationalLoss(LossModule):
         n_agents: how many agents are fitted at once (independent rows).
         world: ``"known"`` if the world's θ is the recorded ``task_theta`` (actions alone
             inform θ), ``"shared"`` if the agent's model is the world's (transitions count too).
+        method: ``"map"``, the paper's hard E-step (the agent's observations at their most
+            probable value), or ``"marginal"``, the agent's unseen observations integrated out
+            by an outer filter over its belief (:mod:`~irc_torchrl.objectives.marginal`).
     """
 
     @dataclass
@@ -57,10 +64,19 @@ class InverseRationalLoss(LossModule):
         theta_space: ThetaSpace | None = None,
         n_agents: int = 1,
         world: str = "known",
+        method: str = "map",
     ) -> None:
         super().__init__()
         if world not in ("known", "shared"):
             raise ValueError(f"world: expected 'known' or 'shared', got {world!r}")
+        if method not in METHODS:
+            raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+        if method == "marginal" and not hasattr(action_model, "assimilate"):
+            raise ValueError(
+                f"method: 'marginal' needs a continuous action model with `assimilate`, "
+                f"got {type(action_model).__name__}"
+            )
+        self.method = method
         self.model = model
         self.action_model = action_model
         self.theta_space = theta_space if theta_space is not None else model.theta_space
@@ -100,6 +116,23 @@ class InverseRationalLoss(LossModule):
         target = trials[keys.target][:, :, 0].to(dtype)
         action, mask = trials[keys.action], trials[keys.mask]
         theta_b = theta.unsqueeze(1).expand(*state.shape[:2], -1)
+        if self.method == "marginal":
+            nuisance_b = nuisance.unsqueeze(1).expand(*state.shape[:2], -1)
+            task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
+            logp = marginal_filter(
+                self.model, self.action_model, theta_b, nuisance_b, state, action.to(dtype),
+                target, task_theta,
+            )[0]  # fmt: skip
+            total = torch.where(mask, logp, torch.zeros_like(logp)).sum((1, 2))
+        else:
+            total = self._map_log_likelihood(theta_b, nuisance, state, action, target, mask)
+        if self.world == "shared":
+            total = total + self._transition_log_likelihood(theta_b, state, action, mask)
+        return total
+
+    def _map_log_likelihood(self, theta_b, nuisance, state, action, target, mask) -> torch.Tensor:
+        """The hard E-step: beliefs along the most probable observations, then the actions."""
+        dtype = theta_b.dtype
         means, covs = self.beliefs(theta_b, state, action, target)
         steps = torch.arange(state.shape[2], device=state.device).view(1, 1, -1, 1)
         features = self.model.belief_features(
@@ -110,12 +143,39 @@ class InverseRationalLoss(LossModule):
             torch.arange(state.shape[0], device=state.device).view(-1, 1, 1).expand_as(mask)[mask]
         )
         logp = self.action_model.log_prob(features[mask], action[mask], nuisance[agent])
-        total = torch.zeros(state.shape[0], dtype=dtype, device=state.device).index_add(
+        return torch.zeros(state.shape[0], dtype=dtype, device=state.device).index_add(
             0, agent, logp
         )
-        if self.world == "shared":
-            total = total + self._transition_log_likelihood(theta_b, state, action, mask)
-        return total
+
+    def recovered_beliefs(
+        self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
+    ) -> TensorDict:
+        """The agent's belief at every recorded step under θ (e.g. θ̂), ``[A, n, T]``.
+
+        ``("belief", "mean")`` and ``("belief", "cov")`` are the agent's belief; with
+        ``method="marginal"`` the mean is its posterior mean given the actions so far and
+        ``("belief", "mean_cov")`` says how well the actions pin it down (zero for ``map``).
+        """
+        keys = self.tensor_keys
+        dtype = theta.dtype
+        state = trials[keys.state].to(dtype)
+        target = trials[keys.target][:, :, 0].to(dtype)
+        action = trials[keys.action].to(dtype)
+        theta_b = theta.unsqueeze(1).expand(*state.shape[:2], -1)
+        if self.method == "marginal":
+            nuisance_b = nuisance.unsqueeze(1).expand(*state.shape[:2], -1)
+            task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
+            _, mean, cov, mean_cov = marginal_filter(
+                self.model, self.action_model, theta_b, nuisance_b, state, action, target,
+                task_theta,
+            )  # fmt: skip
+        else:
+            mean, cov = self.beliefs(theta_b, state, action, target)
+            mean_cov = torch.zeros_like(cov)
+        return TensorDict(
+            {"belief": {"mean": mean, "cov": cov, "mean_cov": mean_cov}},
+            batch_size=state.shape[:3],
+        )
 
     def beliefs(
         self, theta_b: torch.Tensor, state: torch.Tensor, action: torch.Tensor, target: torch.Tensor

@@ -1,0 +1,99 @@
+"""The agent's belief as a latent state: the action likelihood with its observations integrated.
+
+An experimenter sees the states and actions but not the agent's noisy observations, so the
+agent's belief mean ``z_t`` is unknown to them: it is driven by observation noise and read out
+through the actions. Given the agent's θ, its belief covariance ``P_t`` is fixed by the filter
+and ``z_t`` moves linearly in that noise (to first order)::
+
+    z_{t+1} = f(z_t, a_t) + K_{t+1} (h(s_{t+1}) + v_{t+1} - h(f(z_t, a_t))),   v ~ N(0, R_world)
+    a_t     = clip(π(z_t, P_t, θ) + ε_t),                                   ε ~ N(0, σ_m²)
+
+An outer Kalman filter over ``z`` (the actor linearised at the current estimate, as exact
+inverse LQG is in the linear case) gives ``log p(a_{0:T} | s_{0:T}, θ)`` with the agent's
+observations integrated out, and ``E[z_t | actions so far]``, the agent's belief as recovered
+from its behaviour. With the outer covariance held at zero this reduces to the hard E-step
+(observations at their most probable value, ``method="map"``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch.func import jacfwd, vmap
+
+from irc_torchrl.envs.belief import ekf_gain, ekf_predict
+from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+
+__all__ = ["marginal_filter"]
+
+
+def marginal_filter(
+    model: TaskModel,
+    action_model: CensoredGaussianActionModel,
+    theta: torch.Tensor,
+    nuisance: torch.Tensor,
+    state: torch.Tensor,
+    action: torch.Tensor,
+    target: torch.Tensor,
+    task_theta: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Run the outer filter along recorded trials ``[*B, T]``.
+
+    Args:
+        theta: the agent's θ, ``[*B, d]``; ``task_theta`` the world's (its observation noise
+            drives the agent's belief).
+        nuisance: the action model's log motor-noise std, ``[*B, da]``.
+        state, action: recorded, ``[*B, T, ds]`` and ``[*B, T, da]``.
+        target: ``[*B, dt]``.
+
+    Returns:
+        per-step ``log p(a_t | a_{<t}, s)`` ``[*B, T]``; the recovered belief mean
+        ``E[z_t | a_{≤t}]`` ``[*B, T, ds]``; the agent's own belief covariance ``P_t``
+        ``[*B, T, ds, ds]``; and the uncertainty of the recovered mean ``[*B, T, ds, ds]``.
+    """
+    batch, steps = state.shape[:-2], state.shape[-2]
+    flat = batch.numel()
+    ds = model.state_dim
+    theta, nuisance, target, task_theta = (
+        x.reshape(flat, x.shape[-1]) for x in (theta, nuisance, target, task_theta)
+    )
+    state, action = state.reshape(flat, steps, ds), action.reshape(flat, steps, -1)
+    mean, cov = model.initial_belief(state[:, 0], target, theta)
+    outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
+    eye = torch.eye(ds, dtype=cov.dtype, device=cov.device)
+
+    def policy(z, p, tg, step, th):
+        return action_model.actor(model.belief_features(z, p, tg, step, th))
+
+    policy_and_jacobian = vmap(jacfwd(lambda *a: (policy(*a),) * 2, has_aux=True))
+    logps, means, covs, outers = [], [], [], []
+    for t in range(steps):
+        step = torch.full((flat, 1), t, dtype=torch.long, device=state.device)
+        jac, out = policy_and_jacobian(mean, cov, target, step, theta)
+        logp, shift, outer = action_model.assimilate(out, jac, outer, action[:, t], nuisance)
+        mean = mean + shift
+        logps.append(logp)
+        means.append(mean)
+        covs.append(cov)
+        outers.append(outer)
+        if t + 1 == steps:
+            break
+        # the agent's filter, linearised at the recovered mean
+        jac_f = model.transition_jacobian(mean, action[:, t], theta)
+        prior, prior_cov = ekf_predict(model, mean, cov, action[:, t], theta)
+        gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, theta)
+        observation = model.observe(state[:, t + 1], theta)
+        mean = prior + (gain @ (observation - model.observe(prior, theta)).unsqueeze(-1)).squeeze(
+            -1
+        )
+        a = eye - gain @ jac_h
+        cov = a @ prior_cov @ a.mT + gain @ agent_noise @ gain.mT
+        world_noise = model.observation_cov(state[:, t + 1], task_theta)
+        outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
+        cov, outer = 0.5 * (cov + cov.mT), 0.5 * (outer + outer.mT)
+
+    def stack(xs):
+        out = torch.stack(xs, 1)
+        return out.reshape(*batch, steps, *out.shape[2:])
+
+    return stack(logps), stack(means), stack(covs), stack(outers)
