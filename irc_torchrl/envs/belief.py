@@ -21,6 +21,7 @@ __all__ = [
     "ekf_predict",
     "ekf_update",
     "ekf_step",
+    "joseph_update",
     "EKFBelief",
     "BeliefReward",
     "BeliefFeatures",
@@ -73,12 +74,26 @@ def ekf_update(
     if model.observation_dim == 0:
         return mean, cov
     gain, jac, noise = ekf_gain(model, mean, cov, theta)
-    residual = observation - model.observe(mean, theta)
+    mean_next, cov_next, _ = joseph_update(
+        mean, cov, gain, jac, noise, observation - model.observe(mean, theta)
+    )
+    return mean_next, cov_next
+
+
+def joseph_update(
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    gain: torch.Tensor,
+    jac: torch.Tensor,
+    noise: torch.Tensor,
+    residual: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Apply a gain: ``μ + K r`` and the Joseph form ``A Σ Aᵀ + K R Kᵀ``; also ``A = I - K H``."""
     mean_next = mean + (gain @ residual.unsqueeze(-1)).squeeze(-1)
     eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
     a = eye - gain @ jac
     cov_next = a @ cov @ a.transpose(-1, -2) + gain @ noise @ gain.transpose(-1, -2)
-    return mean_next, _symmetrise(cov_next)
+    return mean_next, _symmetrise(cov_next), a
 
 
 def ekf_step(

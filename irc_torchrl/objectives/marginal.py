@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch.func import jacfwd, vmap
 
-from irc_torchrl.envs.belief import ekf_gain, ekf_predict
+from irc_torchrl.envs.belief import ekf_gain, ekf_predict, joseph_update
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 
@@ -60,7 +60,6 @@ def marginal_filter(
     state, action = state.reshape(flat, steps, ds), action.reshape(flat, steps, -1)
     mean, cov = model.initial_belief(state[:, 0], target, theta)
     outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
-    eye = torch.eye(ds, dtype=cov.dtype, device=cov.device)
 
     def policy(z, p, tg, step, th):
         return action_model.actor(model.belief_features(z, p, tg, step, th))
@@ -82,15 +81,11 @@ def marginal_filter(
         jac_f = model.transition_jacobian(mean, action[:, t], theta)
         prior, prior_cov = ekf_predict(model, mean, cov, action[:, t], theta)
         gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, theta)
-        observation = model.observe(state[:, t + 1], theta)
-        mean = prior + (gain @ (observation - model.observe(prior, theta)).unsqueeze(-1)).squeeze(
-            -1
-        )
-        a = eye - gain @ jac_h
-        cov = a @ prior_cov @ a.mT + gain @ agent_noise @ gain.mT
+        residual = model.observe(state[:, t + 1], theta) - model.observe(prior, theta)
+        mean, cov, a = joseph_update(prior, prior_cov, gain, jac_h, agent_noise, residual)
         world_noise = model.observation_cov(state[:, t + 1], task_theta)
         outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
-        cov, outer = 0.5 * (cov + cov.mT), 0.5 * (outer + outer.mT)
+        outer = 0.5 * (outer + outer.mT)
 
     def stack(xs):
         out = torch.stack(xs, 1)
