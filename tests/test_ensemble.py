@@ -14,6 +14,7 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 from irc_torchrl.algorithms.ensemble import (
     Firefly2DConfig,
     evaluate_policy,
+    load_ensemble_policy,
     make_model,
     make_train_env,
     theta_grid,
@@ -171,3 +172,14 @@ def test_n_step_transitions_end_where_their_window_reaches_a_stop():
     # windows of 3 starting at steps 1, 2 and 3 reach the stop; step 0's ends at step 2
     assert terminated[:5] == [False, True, True, True, False]
     assert data["steps_to_next_obs"].squeeze(-1).tolist()[:5] == [3, 3, 2, 1, 3]
+
+
+def test_shipped_checkpoint_loads_by_name_and_catches_fireflies():
+    actor, model, ckpt = load_ensemble_policy("firefly2d")
+    assert ckpt["task"] == "firefly2d"
+    grid = theta_grid(model.theta_space, 16, seed=3)
+    metrics = evaluate_policy(model, actor, grid, trials_per_theta=8, seed=4)
+    floor = evaluate_policy(model, BeliefPursuit(model), grid, trials_per_theta=8, seed=4)
+    # the shipped policy was kept at 84.6% success over the prior (pursuit floor 86.5%)
+    assert metrics["success_rate"] > 0.8
+    assert metrics["mean_return"] > floor["mean_return"] - 0.5

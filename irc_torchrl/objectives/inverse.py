@@ -121,7 +121,7 @@ class InverseRationalLoss(LossModule):
             task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
             logp = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action.to(dtype),
-                target, task_theta,
+                target, task_theta, mask,
             )[0]  # fmt: skip
             total = torch.where(mask, logp, torch.zeros_like(logp)).sum((1, 2))
         else:
@@ -167,7 +167,7 @@ class InverseRationalLoss(LossModule):
             task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
             _, mean, cov, mean_cov = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action, target,
-                task_theta,
+                task_theta, trials[keys.mask],
             )  # fmt: skip
         else:
             mean, cov = self.beliefs(theta_b, state, action, target)

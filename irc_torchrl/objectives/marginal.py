@@ -17,8 +17,10 @@ from its behaviour. With the outer covariance held at zero this reduces to the h
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
-from torch.func import jacfwd, vmap
+from torch.func import vjp, vmap
 
 from irc_torchrl.envs.belief import ekf_gain, ekf_predict, joseph_update
 from irc_torchrl.envs.model import TaskModel
@@ -36,6 +38,7 @@ def marginal_filter(
     action: torch.Tensor,
     target: torch.Tensor,
     task_theta: torch.Tensor,
+    mask: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
@@ -45,6 +48,8 @@ def marginal_filter(
         nuisance: the action model's log motor-noise std, ``[*B, da]``.
         state, action: recorded, ``[*B, T, ds]`` and ``[*B, T, da]``.
         target: ``[*B, dt]``.
+        mask: the recorded steps ``[*B, T]``; a trial is filtered up to its last recorded step
+            only (trials of a dataset differ in length), later outputs are zero.
 
     Returns:
         per-step ``log p(a_t | a_{<t}, s)`` ``[*B, T]``; the recovered belief mean
@@ -54,41 +59,75 @@ def marginal_filter(
     batch, steps = state.shape[:-2], state.shape[-2]
     flat = batch.numel()
     ds = model.state_dim
+    if mask is None:
+        length = torch.full((flat,), steps, device=state.device)
+    else:
+        recorded = torch.arange(1, steps + 1, device=state.device) * mask.reshape(flat, steps)
+        length = recorded.amax(-1)
+    # longest trials first: the trials still running at step t are a prefix of the rows
+    order = length.argsort(descending=True, stable=True)
+    running = (length[order].unsqueeze(0) > torch.arange(steps, device=state.device)[:, None])
+    running = running.sum(-1).tolist()
     theta, nuisance, target, task_theta = (
-        x.reshape(flat, x.shape[-1]) for x in (theta, nuisance, target, task_theta)
+        x.reshape(flat, x.shape[-1])[order] for x in (theta, nuisance, target, task_theta)
     )
-    state, action = state.reshape(flat, steps, ds), action.reshape(flat, steps, -1)
+    state, action = state.reshape(flat, steps, ds)[order], action.reshape(flat, steps, -1)[order]
     mean, cov = model.initial_belief(state[:, 0], target, theta)
     outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
 
     def policy(z, p, tg, step, th):
         return action_model.actor(model.belief_features(z, p, tg, step, th))
 
-    policy_and_jacobian = vmap(jacfwd(lambda *a: (policy(*a),) * 2, has_aux=True))
     logps, means, covs, outers = [], [], [], []
     for t in range(steps):
-        step = torch.full((flat, 1), t, dtype=torch.long, device=state.device)
-        jac, out = policy_and_jacobian(mean, cov, target, step, theta)
-        logp, shift, outer = action_model.assimilate(out, jac, outer, action[:, t], nuisance)
+        n = running[t]
+        if n == 0:
+            break
+        mean, cov, outer = mean[:n], cov[:n], outer[:n]
+        step = torch.full((n, 1), t, dtype=torch.long, device=state.device)
+        out, jac = _rowwise_jacobian(policy, mean, cov, target[:n], step, theta[:n])
+        logp, shift, outer = action_model.assimilate(
+            out, jac, outer, action[:n, t], nuisance[:n]
+        )
         mean = mean + shift
         logps.append(logp)
         means.append(mean)
         covs.append(cov)
         outers.append(outer)
-        if t + 1 == steps:
+        if t + 1 == steps or running[t + 1] == 0:
             break
         # the agent's filter, linearised at the recovered mean
-        jac_f = model.transition_jacobian(mean, action[:, t], theta)
-        prior, prior_cov = ekf_predict(model, mean, cov, action[:, t], theta)
-        gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, theta)
-        residual = model.observe(state[:, t + 1], theta) - model.observe(prior, theta)
+        a_t, th = action[:n, t], theta[:n]
+        jac_f = model.transition_jacobian(mean, a_t, th)
+        prior, prior_cov = ekf_predict(model, mean, cov, a_t, th)
+        gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, th)
+        residual = model.observe(state[:n, t + 1], th) - model.observe(prior, th)
         mean, cov, a = joseph_update(prior, prior_cov, gain, jac_h, agent_noise, residual)
-        world_noise = model.observation_cov(state[:, t + 1], task_theta)
+        world_noise = model.observation_cov(state[:n, t + 1], task_theta[:n])
         outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
         outer = 0.5 * (outer + outer.mT)
 
+    unsort = order.argsort()
+
     def stack(xs):
-        out = torch.stack(xs, 1)
+        padded = [torch.cat([x, x.new_zeros(flat - len(x), *x.shape[1:])]) for x in xs]
+        padded += [padded[0].new_zeros(padded[0].shape)] * (steps - len(padded))
+        out = torch.stack(padded, 1)[unsort]
         return out.reshape(*batch, steps, *out.shape[2:])
 
     return stack(logps), stack(means), stack(covs), stack(outers)
+
+
+def _rowwise_jacobian(
+    fn: Callable[..., torch.Tensor], z: torch.Tensor, *args: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``fn(z, *args)`` ``[n, m]`` and its Jacobian in ``z`` per row, ``[n, m, dz]``.
+
+    Rows are independent, so one reverse pass per output dimension (``m`` is the action's
+    size, 2 here) gives every row's Jacobian: several times cheaper than forward mode over
+    the belief's dimensions under ``vmap``, and differentiable in ``args`` (θ).
+    """
+    out, pullback = vjp(lambda x: fn(x, *args), z)
+    basis = torch.eye(out.shape[-1], dtype=out.dtype, device=out.device)
+    (jac,) = vmap(pullback)(basis.unsqueeze(1).expand(-1, *out.shape))
+    return out, jac.movedim(0, 1)
