@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 __all__ = ["main"]
+
+#: a ``key=value`` setting (``max_iter=60``, ``theta.g_v=1.2``) among positional arguments
+KEY_VALUE = re.compile(r"^[A-Za-z_][\w.]*=")
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -14,12 +19,35 @@ def _demo(args: argparse.Namespace) -> int:
     from irc_torchrl.config import load_config
 
     overrides = [*args.overrides, f"seed={args.seed}"] if args.seed is not None else args.overrides
+    if args.task == "firefly2d":
+        from irc_torchrl.algorithms.recover2d import DEMO_OVERRIDES
+
+        return _run_recovery(args.config, [*DEMO_OVERRIDES, *overrides], args)
     config = load_config(args.config, overrides)
     summary = run_demo(config, args.out, show_progress=not args.quiet)
     print(format_summary(summary))
     print(
         f"wrote {args.out}/: summary.json, config.yaml, "
         "q_function.png, recovery.png, dp_comparison.png"
+    )
+    return 0
+
+
+def _recover(args: argparse.Namespace) -> int:
+    overrides = [*args.overrides, f"seed={args.seed}"] if args.seed is not None else args.overrides
+    return _run_recovery(args.config, overrides, args)
+
+
+def _run_recovery(config_path: str | None, overrides: Sequence[str], args) -> int:
+    from irc_torchrl.algorithms.recover2d import format_recovery, run_recovery
+    from irc_torchrl.config import load_recovery2d_config
+
+    config = load_recovery2d_config(config_path, overrides)
+    summary = run_recovery(config, args.out, show_progress=not args.quiet)
+    print(format_recovery(summary))
+    print(
+        f"wrote {args.out}/: summary.json, config.yaml, trials/ and figures "
+        "(recovery_*.png, beliefs_overhead_*.png, beliefs_time_*.png)"
     )
     return 0
 
@@ -41,6 +69,154 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _simulate(args: argparse.Namespace) -> int:
+    from irc_torchrl.algorithms.recordings import simulate_recordings
+    from irc_torchrl.config import load_simulate_config
+
+    config = load_simulate_config(args.overrides)
+    summary = simulate_recordings(
+        config,
+        args.out,
+        args.checkpoint,
+        args.format,
+        args.seed,
+        args.device,
+        progress=not args.quiet,
+        task=args.task,
+    )
+    for agent in summary["agents"]:
+        theta = ", ".join(f"{k}={v:.3g}" for k, v in agent["theta_true"].items())
+        print(f"{agent['file']}: {agent['n_trials']} trials, θ* {theta}")
+    print(f"wrote {args.out}/: {len(summary['agents'])} recording(s), summary.json (the true θ)")
+    return 0
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from irc_torchrl.algorithms.recordings import fit_recordings, format_fit
+    from irc_torchrl.config import load_recording_fit_config
+
+    # argparse gives every positional to FILE; key=value items are the settings
+    items = [*args.files, *args.overrides]
+    setting = [bool(KEY_VALUE.match(i)) and not Path(i).exists() for i in items]
+    files = [i for i, s in zip(items, setting, strict=True) if not s]
+    config = load_recording_fit_config([i for i, s in zip(items, setting, strict=True) if s])
+    free = [n.strip() for n in args.free.split(",") if n.strip()] if args.free else None
+    summary = fit_recordings(
+        files,
+        args.out,
+        config,
+        checkpoint=args.checkpoint,
+        method=args.method,
+        free=free,
+        seed=args.seed,
+        device=args.device,
+        progress=not args.quiet,
+    )
+    print(format_fit(summary))
+    print(f"wrote {args.out}/: summary.json, beliefs.npz and figures (PNG)")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from irc_torchrl.plots import report_run
+
+    for path in report_run(args.folder):
+        print(f"wrote {path}")
+    return 0
+
+
+def _add_common(parser: argparse.ArgumentParser, overrides_help: str) -> None:
+    """The options every 2D subcommand shares: checkpoint, seed, device, quiet, key=value."""
+    parser.add_argument(
+        "--checkpoint",
+        default="firefly2d",
+        help="a checkpoint file of `irc train`, or the name of a packaged one (default firefly2d)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+    parser.add_argument(
+        "--device", default="cpu", help="torch device to run on, e.g. cpu or cuda:0 (default cpu)"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help=overrides_help)
+
+
+def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
+    """``irc simulate``, ``irc fit`` and ``irc report``."""
+    simulate = commands.add_parser(
+        "simulate",
+        help="simulate agents of the 2D task into recording files, with their true θ",
+        description=(
+            "Agents act by a trained θ-conditioned policy plus Gaussian motor noise in a world "
+            "with a known θ, one recording file per agent (agent0.csv, ...) in the trajectory "
+            "schema (docs/trajectory_schema.md); summary.json holds each agent's true θ. The "
+            "agents' θ: theta.<name>=value where given, drawn from the prior (with --seed) "
+            "elsewhere."
+        ),
+    )
+    simulate.add_argument(
+        "--task", choices=["firefly2d"], default="firefly2d", help="the task (default firefly2d)"
+    )
+    simulate.add_argument("--out", required=True, help="output folder")
+    simulate.add_argument(
+        "--format",
+        choices=["csv", "npz", "nwb", "memmap"],
+        default="csv",
+        help="recording format (default csv; nwb needs pynwb; memmap: a TensorDict folder)",
+    )
+    _add_common(
+        simulate,
+        "settings: n_agents, n_trials, motor_noise, threads, theta.<name> (the agents' θ), "
+        "task_theta.<name> (the world's θ), e.g. n_trials=50 theta.g_v=1.3",
+    )
+    simulate.set_defaults(run=_simulate)
+    fit = commands.add_parser(
+        "fit",
+        help="fit θ with 95%% intervals to recorded trials (one agent per file, 2D task)",
+        description=(
+            "Read recordings (CSV, NPZ, NWB or TensorDict folders; docs/trajectory_schema.md), "
+            "fit each agent's θ (Algorithm 2) with 95% intervals from the observed Fisher "
+            "information, print a table per file and write summary.json, beliefs.npz (the "
+            "agent's belief at every step under θ̂) and figures into --out. A file written by "
+            "`irc simulate` is compared with the true θ from its folder's summary.json."
+        ),
+    )
+    fit.add_argument("files", nargs="+", metavar="FILE", help="recordings, one agent each")
+    fit.add_argument("--out", required=True, help="output folder")
+    fit.add_argument(
+        "--method",
+        choices=["marginal", "map", "both"],
+        default="marginal",
+        help="map: the paper's estimator (most probable observations); marginal (default): "
+        "the agent's observations integrated out, started from the map fit; both: report both",
+    )
+    fit.add_argument(
+        "--free",
+        default=None,
+        metavar="NAME,NAME",
+        help="the θ parameters to fit (default: every free parameter of the checkpoint's θ "
+        "space not set by theta.<name>=value); the others stay at theta.<name>=value if "
+        "given, else at their default",
+    )
+    _add_common(
+        fit,
+        "settings: n_screen, n_starts, max_iter, motor_noise (initial), threads, "
+        "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
+        "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
+    )
+    fit.set_defaults(run=_fit)
+    report = commands.add_parser(
+        "report",
+        help="draw the figures of a run folder (fit, recover, demo or train) as PNG",
+        description=(
+            "Read DIR/summary.json and write PNG figures into DIR: θ̂ against the true θ with "
+            "95% intervals where the truth is known (else θ̂ with intervals per recording), "
+            "the recovered beliefs (from beliefs.npz), and training curves for `irc train`."
+        ),
+    )
+    report.add_argument("folder", metavar="DIR", help="a run folder with a summary.json")
+    report.set_defaults(run=_report)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="irc",
@@ -57,7 +233,13 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     demo.add_argument(
-        "--task", choices=["firefly1d"], default="firefly1d", help="the task (default firefly1d)"
+        "--task",
+        choices=["firefly1d", "firefly2d"],
+        default="firefly1d",
+        help=(
+            "firefly1d (default): the above, about a minute; firefly2d: the recovery experiment "
+            "of `irc recover` on 4 agents × 40 trials with the shipped 2D policy, a few minutes"
+        ),
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     demo.add_argument(
@@ -89,14 +271,46 @@ def build_parser() -> argparse.ArgumentParser:
         "overrides", nargs="*", metavar="key=value", help="config overrides, e.g. ddpg.n_envs=128"
     )
     train.set_defaults(run=_train)
+    recover = commands.add_parser(
+        "recover",
+        help="simulate 2D agents with known θ*, fit them by both estimators, score the intervals",
+        description=(
+            "The recovery experiment on the 2D task: n_prior_agents agents whose model is right "
+            "and n_mistaken_agents living in the default world with another θ, acting with the "
+            "shipped policy plus motor noise; every θ component and the motor noise fitted from "
+            "states and actions by the hard E-step (map) and with the agent's observations "
+            "integrated out (marginal). Writes summary.json (coverage, errors, widths, belief "
+            "agreement per method), config.yaml, trials/ and figures into --out."
+        ),
+    )
+    recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
+    recover.add_argument(
+        "--out", default="runs/recover", help="output folder (default runs/recover)"
+    )
+    recover.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    recover.add_argument("--quiet", action="store_true", help="no progress bars")
+    recover.add_argument(
+        "overrides", nargs="*", metavar="key=value", help="config overrides, e.g. n_trials=50"
+    )
+    recover.set_defaults(run=_recover)
+    _add_recording_commands(commands)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the ``irc`` command; a clear error on bad input exits with status 2."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    # key=value settings may also follow options (`irc fit a.csv --out r max_iter=60`)
+    takes_settings = hasattr(args, "overrides")
+    stray = [item for item in extra if not (takes_settings and KEY_VALUE.match(item))]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = [*args.overrides, *extra]
     try:
         return args.run(args)
-    except (KeyError, ValueError, TypeError, FileNotFoundError) as error:
+    except (KeyError, ValueError, TypeError, FileNotFoundError, ImportError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"irc {args.command}: error: {message}", file=sys.stderr)
         return 2

@@ -11,7 +11,7 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -22,6 +22,9 @@ from irc_torchrl.algorithms.ensemble import (
 )
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 
+if TYPE_CHECKING:  # recover2d imports this module
+    from irc_torchrl.algorithms.recover2d import Recovery2DConfig
+
 __all__ = [
     "AgentsConfig",
     "DDPGConfig",
@@ -29,8 +32,12 @@ __all__ = [
     "FitConfig",
     "Firefly1DConfig",
     "Firefly2DConfig",
+    "RecordingFitConfig",
+    "SimulateConfig",
     "load_config",
     "load_firefly2d_config",
+    "load_recording_fit_config",
+    "load_simulate_config",
     "config_to_dict",
 ]
 
@@ -54,6 +61,8 @@ class FitConfig:
     n_screen: int = 64
     n_starts: int = 4
     max_iter: int = 40
+    #: "hessian" (exact Newton) or "fisher" (Fisher scoring far from θ̂, Newton near it)
+    curvature: str = "hessian"
 
 
 @dataclass
@@ -71,6 +80,74 @@ class Firefly1DConfig:
     fit: FitConfig = field(default_factory=FitConfig)
 
 
+@dataclass
+class SimulateConfig:
+    """``irc simulate``: agents acting by a trained policy plus motor noise, in a known world."""
+
+    n_agents: int = 1
+    n_trials: int = 100
+    #: std of the Gaussian motor noise added to the policy's action (then clipped to the bounds)
+    motor_noise: float = 0.1
+    #: the agents' θ, e.g. ``theta.g_v=1.3``; a parameter left out is drawn from the prior
+    theta: dict = field(default_factory=dict)
+    #: the world's θ, e.g. ``task_theta.g_v=1.2``; a parameter left out takes its default
+    task_theta: dict = field(default_factory=dict)
+    #: torch threads (small networks run fastest on one)
+    threads: int = 1
+
+    def validate(self) -> SimulateConfig:
+        """Return ``self`` if every number is usable, else raise a one-line error naming it."""
+        _positive(
+            n_agents=self.n_agents,
+            n_trials=self.n_trials,
+            motor_noise=self.motor_noise,
+            threads=self.threads,
+        )
+        return self
+
+
+@dataclass
+class RecordingFitConfig:
+    """``irc fit``: Algorithm 2 on recorded trials, actions scored by a censored Gaussian."""
+
+    #: prior draws scored by likelihood alone; Newton starts from the best ``n_starts``
+    n_screen: int = 16
+    n_starts: int = 2
+    max_iter: int = 40
+    #: the motor-noise std the fit starts from (a nuisance parameter, fitted beside θ)
+    motor_noise: float = 0.1
+    #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
+    #: a parameter named nowhere takes its default
+    theta: dict = field(default_factory=dict)
+    #: units of recorded columns that differ from the task's, e.g. ``units.x=cm``
+    #: (docs/trajectory_schema.md lists the known units)
+    units: dict = field(default_factory=dict)
+    #: torch threads (small networks run fastest on one)
+    threads: int = 1
+
+    def validate(self) -> RecordingFitConfig:
+        """Return ``self`` if every number is usable, else raise a one-line error naming it."""
+        _positive(
+            n_screen=self.n_screen,
+            n_starts=self.n_starts,
+            max_iter=self.max_iter,
+            motor_noise=self.motor_noise,
+            threads=self.threads,
+        )
+        if self.n_starts > self.n_screen:
+            raise ValueError(
+                f"config: n_starts={self.n_starts} exceeds n_screen={self.n_screen}; "
+                "the starts are the best of the screened draws"
+            )
+        return self
+
+
+def _positive(**values: float) -> None:
+    for name, value in values.items():
+        if not value > 0:
+            raise ValueError(f"config: {name} must be positive, got {value}")
+
+
 def config_to_dict(config: Any) -> dict:
     """A plain dict (for YAML, JSON and ``summary.json``)."""
     return dataclasses.asdict(config)
@@ -82,6 +159,8 @@ def _valid_keys(config: Any, prefix: str = "") -> list[str]:
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value):
             keys += _valid_keys(value, f"{prefix}{f.name}.")
+        elif isinstance(value, dict):
+            keys.append(f"{prefix}{f.name}.<name>")
         else:
             keys.append(prefix + f.name)
     return keys
@@ -91,10 +170,14 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
     """Set the field at ``dotted`` below ``config`` (which sits at ``prefix`` in ``root``)."""
     head, _, rest = dotted.partition(".")
     names = {f.name for f in dataclasses.fields(config)}
-    if head not in names or (rest and not dataclasses.is_dataclass(getattr(config, head))):
+    current = getattr(config, head) if head in names else None
+    nested = dataclasses.is_dataclass(current) or isinstance(current, dict)
+    if head not in names or (rest and not nested):
         valid = ", ".join(_valid_keys(root))
         raise KeyError(f"config: unknown key {prefix + dotted!r}; valid keys: {valid}")
-    current = getattr(config, head)
+    if rest and isinstance(current, dict):  # a mapping field: ``theta.g_v=1.2``
+        current[rest] = value
+        return
     if rest:
         _set(current, rest, value, root, f"{prefix}{head}.")
         return
@@ -123,6 +206,10 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
         raise ValueError(
             f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}"
         )
+    if config.fit.curvature not in ("hessian", "fisher"):
+        raise ValueError(
+            f"config: fit.curvature must be 'hessian' or 'fisher', got {config.fit.curvature!r}"
+        )
     return config
 
 
@@ -131,6 +218,16 @@ def load_firefly2d_config(
 ) -> Firefly2DConfig:
     """The 2D ensemble-training config: embedded default, then the YAML file, then ``key=value``."""
     return _update(Firefly2DConfig(), path, overrides).validate()
+
+
+def load_simulate_config(overrides: Sequence[str] = ()) -> SimulateConfig:
+    """``irc simulate``'s settings: the embedded default updated by ``key=value`` items."""
+    return _update(SimulateConfig(), None, overrides).validate()
+
+
+def load_recording_fit_config(overrides: Sequence[str] = ()) -> RecordingFitConfig:
+    """``irc fit``'s settings: the embedded default updated by ``key=value`` items."""
+    return _update(RecordingFitConfig(), None, overrides).validate()
 
 
 def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> Any:
@@ -152,3 +249,12 @@ def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> A
             raise ValueError(f"config: override {item!r} must look like key=value")
         _set(config, key.strip(), yaml.safe_load(value), config)
     return config
+
+
+def load_recovery2d_config(
+    path: str | Path | None = None, overrides: Sequence[str] = ()
+) -> Recovery2DConfig:
+    """The 2D recovery experiment's config: embedded default, the YAML file, then ``key=value``."""
+    from irc_torchrl.algorithms.recover2d import Recovery2DConfig
+
+    return _update(Recovery2DConfig(), path, overrides).validate()

@@ -1,18 +1,40 @@
-"""The paper's figures, drawn with matplotlib and written atomically as PNG."""
+"""The paper's figures and the run reports, drawn with matplotlib and written atomically as PNG.
+
+:func:`report_run` turns a run folder (``irc fit``, ``recover``, ``demo`` or ``train``) into
+figures from its ``summary.json`` (and ``beliefs.npz`` or ``logs/`` where present).
+"""
 
 from __future__ import annotations
 
+import json
+import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.patches import Circle, Ellipse  # noqa: E402
 
 from irc_torchrl.data.files import atomic_path  # noqa: E402
+from irc_torchrl.objectives.fisher import Z95  # noqa: E402
 
-__all__ = ["plot_q_function", "plot_recovery", "plot_dp_comparison"]
+__all__ = [
+    "plot_belief_overhead",
+    "plot_belief_time",
+    "plot_dp_comparison",
+    "plot_estimates",
+    "plot_q_function",
+    "plot_recovery",
+    "plot_training",
+    "report_run",
+]
+
+#: radius, in standard deviations, of a 2D Gaussian's 95% ellipse (√χ²₂(0.95))
+ELLIPSE_95 = math.sqrt(-2 * math.log(0.05))
 
 ACTION_NAMES = ("left", "stop", "right")
 
@@ -51,11 +73,27 @@ def plot_q_function(
     return _save(fig, path)
 
 
-def plot_recovery(summary: dict, path: str | Path) -> Path:
+def _with_unit(label: str, unit: str | None) -> str:
+    return f"{label} ({unit})" if unit else label
+
+
+def plot_recovery(
+    summary: dict,
+    path: str | Path,
+    title: str | None = None,
+    units: Mapping[str, str] | None = None,
+) -> Path:
     """Fig. 1C/1D: θ̂ against θ* with 95% intervals, one panel per free parameter."""
+    units = units or {}
     names = list(summary["parameters"])
-    fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.4), squeeze=False)
-    for ax, name in zip(axes[0], names, strict=True):
+    cols = min(4, len(names))
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.4 * rows), squeeze=False)
+    for ax in axes.flat[len(names) :]:
+        ax.set_visible(False)
+    if title is not None:
+        fig.suptitle(title)
+    for ax, name in zip(axes.flat, names, strict=False):
         truth = [a["theta_true"][name] for a in summary["agents"]]
         hat = [a["theta_hat"][name] for a in summary["agents"]]
         low = [a["theta_hat"][name] - a["ci_low"][name] for a in summary["agents"]]
@@ -65,8 +103,8 @@ def plot_recovery(summary: dict, path: str | Path) -> Path:
         ax.plot([lo, hi], [lo, hi], "k:", lw=0.8)
         stats = summary["parameters"][name]
         ax.set_title(f"{name}: coverage {stats['coverage']:.2f}", fontsize=9)
-        ax.set_xlabel(f"true {name}")
-        ax.set_ylabel(f"estimated {name} (95% CI)")
+        ax.set_xlabel(_with_unit(f"true {name}", units.get(name)))
+        ax.set_ylabel(_with_unit(f"estimated {name}, 95% CI", units.get(name)))
     return _save(fig, path)
 
 
@@ -87,3 +125,257 @@ def plot_dp_comparison(
     )
     ax.legend(fontsize=8)
     return _save(fig, path)
+
+
+def plot_estimates(summary: dict, path: str | Path, units: Mapping[str, str] | None = None) -> Path:
+    """θ̂ with 95% intervals per agent, one panel per fitted parameter (no truth to compare)."""
+    units = units or {}
+    agents = summary["agents"]
+    names = summary.get("free") or list(summary.get("parameters") or agents[0]["theta_hat"])
+    labels = [a.get("label", str(i)) for i, a in enumerate(agents)]
+    width = max(3.2, 0.45 * len(agents) + 1.5)  # per panel: room for every recording's label
+    fig, axes = plt.subplots(1, len(names), figsize=(width * len(names), 3.4), squeeze=False)
+    x = np.arange(len(agents))
+    for ax, name in zip(axes[0], names, strict=True):
+        hat = np.array([a["theta_hat"][name] for a in agents])
+        low = np.array([a["ci_low"][name] for a in agents])
+        high = np.array([a["ci_high"][name] for a in agents])
+        identified = np.array([a["identified"][name] for a in agents], dtype=bool)
+        groups = ((identified, "o", "identified"), (~identified, "x", "not identified"))
+        for keep, style, tag in groups:
+            if keep.any():
+                ax.errorbar(
+                    x[keep], hat[keep], yerr=[hat[keep] - low[keep], high[keep] - hat[keep]],
+                    fmt=style, ms=4, capsize=3, lw=0.9, label=tag,
+                )  # fmt: skip
+        ax.set_xticks(x, labels, rotation=45 if len(agents) > 3 else 0, fontsize=7)
+        ax.set_xlabel("recording")
+        ax.set_ylabel(_with_unit(f"{name}, θ̂ with 95% CI", units.get(name)))
+        ax.set_title(name, fontsize=9)
+    axes[0][0].legend(fontsize=7)
+    return _save(fig, path)
+
+
+def _recorded(arrays: Mapping[str, np.ndarray], trial: int) -> dict[str, np.ndarray]:
+    """One trial's recorded steps of the belief arrays (see ``beliefs.npz``)."""
+    keep = arrays["mask"][trial].astype(bool)
+    return {k: v[trial][keep] for k, v in arrays.items() if k != "mask"}
+
+
+def plot_belief_overhead(
+    arrays: Mapping[str, np.ndarray],
+    path: str | Path,
+    goal_radius: float | None = None,
+    n_trials: int = 4,
+    distance_unit: str = "distance",
+    title: str = "",
+) -> Path:
+    """Overhead view of a few trials: true path, believed position with 95% ellipses, target.
+
+    ``arrays`` holds ``state [n, T, ds]`` (x, y first), ``target [n, T, 2]``, ``mask [n, T]``
+    and the belief ``mean [n, T, ds]``, ``cov [n, T, ds, ds]``, as in ``beliefs.npz``; with
+    ``true_mean [n, T, ds]`` (simulated agents) the belief the agent really held is drawn too
+    (the paper's Fig. 1E).
+    """
+    shown = min(n_trials, arrays["state"].shape[0])
+    fig, axes = plt.subplots(1, shown, figsize=(3.4 * shown, 3.6), squeeze=False)
+    for trial, ax in enumerate(axes[0]):
+        t = _recorded(arrays, trial)
+        stride = max(1, len(t["mean"]) // 8)
+        for k in range(0, len(t["mean"]), stride):
+            eigval, eigvec = np.linalg.eigh(t["cov"][k, :2, :2])
+            width, height = 2 * ELLIPSE_95 * np.sqrt(np.clip(eigval[::-1], 0, None))
+            angle = math.degrees(math.atan2(eigvec[1, 1], eigvec[0, 1]))
+            ax.add_patch(
+                Ellipse(
+                    t["mean"][k, :2], width, height, angle=angle, fill=False, color="tab:blue",
+                    alpha=0.6, lw=0.8, label="belief, 95% ellipse" if k == 0 else None,
+                )
+            )  # fmt: skip
+        ax.plot(t["state"][:, 0], t["state"][:, 1], "k-", lw=1.2, label="true path")
+        ax.plot(t["mean"][:, 0], t["mean"][:, 1], "--", color="tab:blue", lw=1, label="belief mean")
+        if "true_mean" in t:  # simulated agents: the belief the agent really held
+            ax.plot(
+                t["true_mean"][:, 0], t["true_mean"][:, 1], "-", color="tab:orange", lw=1,
+                label="agent's own belief mean",
+            )  # fmt: skip
+        target = t["target"][0]
+        ax.plot(*target, "r*", ms=10, label="target")
+        if goal_radius is not None:
+            ax.add_patch(Circle(target, goal_radius, fill=False, color="r", ls=":", lw=0.8))
+        ax.plot(0, 0, "ko", ms=3)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"x ({distance_unit})")
+        ax.set_ylabel(f"y ({distance_unit})")
+        ax.set_title(f"trial {trial}", fontsize=9)
+    axes[0][0].legend(fontsize=6, loc="best")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return _save(fig, path)
+
+
+def plot_belief_time(
+    arrays: Mapping[str, np.ndarray],
+    names: Sequence[str],
+    units: Sequence[str],
+    path: str | Path,
+    n_trials: int = 3,
+    title: str = "",
+) -> Path:
+    """Each belief component over time for a few trials: the truth, the mean and its 95% band
+    (and, with ``true_mean``, the belief the agent really held: the paper's Fig. 1F)."""
+    shown = min(n_trials, arrays["state"].shape[0])
+    fig, axes = plt.subplots(len(names), 1, figsize=(6, 1.6 * len(names) + 0.6), sharex=True)
+    for trial in range(shown):
+        t = _recorded(arrays, trial)
+        std = np.sqrt(np.clip(np.diagonal(t["cov"], axis1=-2, axis2=-1), 0, None))
+        for i, ax in enumerate(axes):
+            mean = t["mean"][:, i]
+            (line,) = ax.plot(t["time"], mean, "--", lw=1, label=f"belief, trial {trial}")
+            color = line.get_color()
+            ax.fill_between(
+                t["time"], mean - Z95 * std[:, i], mean + Z95 * std[:, i],
+                color=color, alpha=0.15, lw=0,
+            )  # fmt: skip
+            true = t["state"][:, i]
+            ax.plot(t["time"], true, "-", color=color, lw=0.8, label=f"true, trial {trial}")
+            if "true_mean" in t:  # simulated agents: the belief the agent really held
+                ax.plot(t["time"], t["true_mean"][:, i], ":", color=color, lw=1.2,
+                        label=f"agent's own belief, trial {trial}")  # fmt: skip
+    for ax, name, unit in zip(axes, names, units, strict=True):
+        ax.set_ylabel(f"{name}\n({unit})", fontsize=8)
+    axes[-1].set_xlabel("time in trial (s)")
+    axes[0].legend(fontsize=6, ncol=2, loc="best")
+    fig.suptitle(title or "belief (dashed, 95% band) against the true state (solid)", fontsize=9)
+    return _save(fig, path)
+
+
+def plot_training(
+    history: Sequence[Mapping[str, float]],
+    losses: Mapping[str, np.ndarray],
+    path: str | Path,
+) -> Path:
+    """Training curves of ``irc train``: evaluation success and return, and the DDPG losses.
+
+    ``history`` is ``summary.json``'s list of evaluations; ``losses`` maps a logged name to
+    ``[n, 2]`` rows of (frames, value), as the CSV logger writes them under ``logs/``.
+    """
+    frames = [row["frames"] for row in history]
+    panels = 2 + bool(losses)
+    fig, axes = plt.subplots(1, panels, figsize=(4 * panels, 3.3), squeeze=False)
+    ax = axes[0][0]
+    ax.plot(frames, [row["success_rate"] for row in history], "o-", ms=3)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("environment frames")
+    ax.set_ylabel("success rate (fraction of trials)")
+    ax.set_title("greedy policy on the θ grid", fontsize=9)
+    ax = axes[0][1]
+    ax.plot(frames, [row["mean_return"] for row in history], "o-", ms=3)
+    ax.set_xlabel("environment frames")
+    ax.set_ylabel("mean return (reward units)")
+    if losses:
+        ax = axes[0][2]
+        meaning = {"loss_value": "TD error², reward²", "loss_actor": "−Q, reward units"}
+        for name, rows in sorted(losses.items()):
+            label = f"{name} ({meaning[name]})" if name in meaning else name
+            ax.plot(rows[:, 0], rows[:, 1], lw=0.8, label=label)
+        ax.set_xlabel("environment frames")
+        ax.set_ylabel("DDPG loss")
+        ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def _logged_losses(logs: Path) -> dict[str, np.ndarray]:
+    """The ``loss_*`` scalars TorchRL's CSV logger wrote under ``logs/`` (rows: step, value)."""
+    losses = {}
+    for csv in sorted(logs.glob("*/scalars/loss_*.csv")):
+        rows = np.loadtxt(csv, delimiter=",", ndmin=2)
+        if rows.size:
+            losses[csv.stem] = rows
+    return losses
+
+
+def _task_units(task: str | None) -> dict[str, str]:
+    """θ units of a task by name (summaries written before they carried their own)."""
+    from irc_torchrl.envs.firefly1d import firefly1d_theta_space
+    from irc_torchrl.envs.firefly2d import firefly2d_theta_space
+
+    spaces = {"firefly1d": firefly1d_theta_space, "firefly2d": firefly2d_theta_space}
+    if task not in spaces:
+        return {}
+    return {p.name: p.unit for p in spaces[task]().parameters}
+
+
+def _agent_figures(part: Mapping, path: Path, units: Mapping[str, str]) -> Path:
+    """θ̂ against the truth where every agent has one (and coverage was scored), else θ̂ alone."""
+    if "parameters" in part and all("theta_true" in a for a in part["agents"]):
+        return plot_recovery(dict(part), path.with_name(f"recovery{path.name}"), units=units)
+    return plot_estimates(dict(part), path.with_name(f"estimates{path.name}"), units)
+
+
+def report_run(folder: str | Path) -> list[Path]:
+    """Draw the figures of a run folder from its ``summary.json``; returns the PNGs written.
+
+    Agents (``irc fit``, ``recover``, ``demo``): θ̂ against θ* with 95% intervals where the
+    truth is known, else θ̂ with intervals per recording; per method too where the summary
+    has ``methods`` (``--method both``, ``irc recover``). ``beliefs.npz`` (``irc fit``): the
+    recovered beliefs overhead and over time, per recording. ``history`` (``irc train``):
+    training curves, with the losses logged under ``logs/``.
+    """
+    folder = Path(folder)
+    path = folder / "summary.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"report: no summary.json in {folder}")
+    try:
+        summary = json.loads(path.read_text())
+    except ValueError as error:
+        raise ValueError(f"report: {path} is not valid JSON ({error})") from None
+    written = []
+    if summary.get("history"):
+        losses = _logged_losses(folder / "logs")
+        written.append(plot_training(summary["history"], losses, folder / "training.png"))
+    units = summary.get("units") or _task_units(summary.get("task"))
+    # with per-method results, the top-level agents repeat one of them
+    if summary.get("agents") and "theta_hat" in summary["agents"][0] and not summary.get("methods"):
+        written.append(_agent_figures(summary, folder / ".png", units))
+    for method, part in summary.get("methods", {}).items():
+        if part.get("agents"):
+            part = {"free": summary.get("free"), **part}
+            written.append(_agent_figures(part, folder / f"_{method}.png", units))
+    beliefs = folder / "beliefs.npz"
+    if beliefs.is_file() and "state_names" in summary:
+        written += _belief_figures(summary, beliefs, folder)
+    if not written:
+        raise ValueError(
+            f"report: {path} holds neither fitted agents nor a training history; expected "
+            "the summary.json of irc fit, recover, demo or train"
+        )
+    return written
+
+
+def _belief_figures(summary: Mapping, beliefs: Path, folder: Path) -> list[Path]:
+    """The two belief figures of each fitted recording, from ``beliefs.npz``."""
+    written = []
+    distance = summary["state_units"][0]
+    with np.load(beliefs, allow_pickle=False) as archive:
+        for agent in summary["agents"]:
+            label = agent["label"]
+            arrays = {
+                key.split("/", 1)[1]: archive[key]
+                for key in archive.files
+                if key.split("/", 1)[0] == label
+            }
+            title = f"{label}: beliefs under θ̂ ({summary.get('method', '')})"
+            written.append(
+                plot_belief_overhead(
+                    arrays, folder / f"{label}_beliefs_overhead.png",
+                    agent["theta_hat"].get("goal_radius"), distance_unit=distance, title=title,
+                )
+            )  # fmt: skip
+            written.append(
+                plot_belief_time(
+                    arrays, summary["state_names"], summary["state_units"],
+                    folder / f"{label}_beliefs_time.png", title=title,
+                )
+            )  # fmt: skip
+    return written

@@ -224,12 +224,20 @@ def test_fisher_intervals_identification_and_bounds(space):
     assert width == pytest.approx(2 * 1.96 * slope / 100, rel=1e-3)
     # a nearly flat direction spans (almost) the whole prior range and stays inside it
     assert iv.high[1, 1] - iv.low[1, 1] > 0.9 * (high[1] - low[1])
-    # a singular Hessian (a direction with no curvature at all) flags the agent's θ
+    # a direction with no curvature at all leaves the parameters on it without an interval
+    # (infinite sd, the whole range) and only those
     singular = hessian.clone()
     singular[0, 1, 1] = 0.0
     iv = fisher_intervals(space, theta_hat, u, singular)
-    assert not iv.identified[0, :2].any() and iv.identified[1, 0]
-    assert torch.isinf(iv.std[0, :2]).all()
+    assert iv.identified[0, 0] and not iv.identified[0, 1] and iv.identified[1, 0]
+    assert torch.isfinite(iv.std[0, 0]) and torch.isinf(iv.std[0, 1])
+    torch.testing.assert_close(iv.low[0, 1], low[1])
+    torch.testing.assert_close(iv.high[0, 1], high[1])
+    # a flat direction that mixes two parameters takes both
+    mixed = hessian.clone()
+    mixed[0, :2, :2] = torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    iv = fisher_intervals(space, theta_hat, u, mixed)
+    assert not iv.identified[0, :2].any() and torch.isinf(iv.std[0, :2]).all()
     torch.testing.assert_close(iv.low[0, :2], low[:2])
     torch.testing.assert_close(iv.high[0, :2], high[:2])
 

@@ -1,13 +1,18 @@
 """Algorithm 2: maximum-likelihood θ̂ for many agents at once, with Fisher intervals.
 
 Every (agent, start) pair is an independent row of one batched problem. A damped Newton
-(Levenberg–Marquardt) iteration in unconstrained coordinates uses each row's exact gradient and
-Hessian, so rows converge at their own pace and the Hessian at θ̂ is the observed Fisher
-information used for the intervals.
+(Levenberg–Marquardt) iteration in unconstrained coordinates moves each row with its exact
+gradient and a curvature: the exact Hessian (``curvature="hessian"``: one double-backward pass
+per parameter), or Fisher scoring (``"fisher"``: the outer product of per-trial scores of data
+drawn from the model along the recorded trials, from the same single backward pass as the
+gradient; positive semi-definite and, like Gauss–Newton, reliable far from θ̂ where the Hessian
+is indefinite). Rows converge at their own pace. The exact Hessian at θ̂, the observed Fisher
+information, gives the intervals either way.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -18,10 +23,17 @@ from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-__all__ = ["FitResult", "fit_theta"]
+__all__ = ["CURVATURES", "FitResult", "fit_theta"]
+
+#: how the iterations measure curvature (the intervals always use the exact Hessian at θ̂)
+CURVATURES = ("hessian", "fisher")
 
 #: the largest move of one Newton step in any unconstrained coordinate
 MAX_STEP = 1.5
+#: iterations without a gain of ``tol`` after which a Newton row has converged
+IDLE = 4
+#: Fisher scoring hands a row to Newton's method once it promises or gains less than this (nats)
+SWITCH = 1.0
 
 
 @dataclass
@@ -35,6 +47,17 @@ class FitResult:
     converged: torch.Tensor
     iterations: int
     names: list[str]
+
+    def select(self, rows: torch.Tensor) -> FitResult:
+        """The agents ``rows`` (an index or mask) of a batched fit."""
+        return dataclasses.replace(
+            self,
+            theta_hat=self.theta_hat[rows],
+            nuisance=self.nuisance[rows],
+            log_likelihood=self.log_likelihood[rows],
+            intervals=self.intervals.select(rows),
+            converged=self.converged[rows],
+        )
 
     def agent(self, i: int) -> dict:
         """One agent's result as plain Python values (the ``summary.json`` entry)."""
@@ -61,25 +84,41 @@ def fit_theta(
     n_starts: int = 4,
     n_screen: int = 64,
     max_iter: int = 40,
-    tol: float = 1e-6,
+    tol: float = 1e-4,
     seed: int = 0,
+    curvature: str = "hessian",
+    starts: torch.Tensor | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> FitResult:
     """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``).
 
     ``n_screen`` candidates (the prior's default and draws from the prior, the same for every
     agent) are scored by likelihood alone; Newton runs from each agent's best ``n_starts`` of
-    them and the best end point per agent is kept. Agents are independent rows: an agent's
-    result does not depend on the others in the call. Returns θ̂, 95% intervals from the
-    observed Fisher information, identifiability flags, the log-likelihood and whether each
-    fit converged.
+    them and the best end point per agent is kept. ``starts`` (natural θ ``[n_agents, d]``,
+    e.g. another estimator's θ̂) replaces the screening with one start per agent. Agents are
+    independent rows: an agent's result does not depend on the others in the call. Returns θ̂,
+    95% intervals from the observed Fisher information, identifiability flags, the
+    log-likelihood and whether each fit converged.
     """
+    if curvature not in CURVATURES:
+        raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents = trials.shape[0]
     free = space.free_mask
     k = int(free.sum())
-    params = _screen_starts(loss, trials, n_screen, n_starts, seed)
+    if starts is not None:
+        starts = space.validate(starts, "starts").double()
+        if starts.shape[0] != n_agents:
+            raise ValueError(
+                f"starts: expected one θ per agent, [{n_agents}, {space.dim}], "
+                f"got {list(starts.shape)}"
+            )
+        nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
+        params = torch.cat([space.to_unconstrained(starts)[:, free], nuisance], -1)
+        n_starts = 1
+    else:
+        params = _screen_starts(loss, trials, n_screen, n_starts, seed)
     rows = (
         trials.unsqueeze(1)
         .expand(n_agents, n_starts, *trials.shape[1:])
@@ -89,35 +128,65 @@ def fit_theta(
     def nll(p: torch.Tensor, data: TensorDictBase) -> torch.Tensor:
         return -loss.log_likelihood(loss.theta(p[:, :k]), p[:, k:], data)
 
-    value, grad, hessian = batched_hessian(lambda p: nll(p, rows), params)
+    draws = torch.Generator().manual_seed(seed)
+
+    def derivatives(p: torch.Tensor, data: TensorDictBase, exact: torch.Tensor):
+        """Value, gradient and curvature of rows ``p``: the exact Hessian where ``exact``."""
+        n, m = p.shape
+        out = (p.new_empty(n), p.new_empty(n, m), p.new_empty(n, m, m))
+        for rows_, hess in ((exact, True), (~exact, False)):
+            if rows_.any():
+                q, d = p[rows_], data[rows_]
+                parts = (
+                    batched_hessian(lambda x, d=d: nll(x, d), q)
+                    if hess
+                    else _fisher_scoring(loss, k, q, d, draws)
+                )
+                for o, v in zip(out, parts, strict=True):
+                    o[rows_] = v
+        return out
+
+    # rows near θ̂ step with the exact Hessian (Newton converges quadratically there);
+    # Fisher scoring brings the others near
+    near = torch.full((params.shape[0],), curvature == "hessian")
+    value, grad, hessian = derivatives(params, rows, near)
     damping = torch.full((params.shape[0],), 1e-3, dtype=torch.float64)
-    eye = torch.eye(params.shape[1], dtype=torch.float64)
     converged = torch.zeros(params.shape[0], dtype=torch.bool)
     stalled = torch.zeros_like(converged)  # no step improves: stop, but do not claim θ̂
+    # iterations in a row without a gain of ``tol``: a flat top (e.g. θ̂ on a bound, where
+    # the unconstrained coordinate drifts off with vanishing gradient and curvature)
+    idle = torch.zeros(params.shape[0], dtype=torch.long)
     iterations = 0
     for iterations in range(1, max_iter + 1):
         # only rows still moving cost work; a rejected step leaves a row's derivatives valid
         active = (~converged & ~stalled).nonzero().squeeze(-1)
         h, g, d = hessian[active], grad[active], damping[active]
-        scale = h.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye
-        step = -torch.linalg.solve(h + d.view(-1, 1, 1) * (scale + eye), g.unsqueeze(-1))
-        # a trust region in unconstrained units: one long step can land where the logit
-        # saturates, the gradient vanishes and the fit would stall far from θ̂
-        step = step.squeeze(-1)
-        step = step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1)
+        # the undamped Newton decrement: the decrease a full step promises (∞ where the
+        # curvature is not positive definite); tiny means θ̂ is reached
+        decrement = _newton_decrement(h, g)
+        converged[active] = near[active] & ((decrement < tol) | (idle[active] >= IDLE))
+        step, d = _damped_step(h, g, d)
         with torch.no_grad():
-            accept = nll(params[active] + step, rows[active]) < value[active] - 1e-12
-        damping[active] = torch.where(accept, d / 3, d * 8).clamp(1e-9, 1e9)
-        # Newton decrement: the decrease a full step promises; tiny means θ̂ is reached
-        decrement = -(g * step).sum(-1)
-        converged[active] = decrement.abs() < tol
+            gain = value[active] - nll(params[active] + step, rows[active])
+        accept = (gain > 1e-12) & ~converged[active]
+        # Fisher scoring has done its part once it promises or makes little progress
+        switch = ~near[active] & ((decrement < SWITCH) | (accept & (gain < SWITCH)))
+        # the gain ratio: how much of the decrease the quadratic model promised was made
+        promised = -(g * step).sum(-1) - 0.5 * (step.unsqueeze(-2) @ h @ step.unsqueeze(-1)).view(
+            -1
+        )
+        ratio = gain / promised.clamp_min(1e-300)
+        damping[active] = torch.where(
+            ~accept, d * 8, torch.where(ratio > 0.75, d / 3, torch.where(ratio < 0.25, d * 2, d))
+        ).clamp(1e-9, 1e9)
         stalled[active] = damping[active] >= 1e9
-        moved = active[accept]
-        if len(moved):
-            params[moved] += step[accept]
-            data = rows[moved]
-            value[moved], grad[moved], hessian[moved] = batched_hessian(
-                lambda p, data=data: nll(p, data), params[moved]
+        idle[active] = torch.where(accept & (gain >= tol), 0, idle[active] + 1)
+        params[active[accept]] += step[accept]
+        near[active[switch]] = True
+        refresh = active[accept | switch]
+        if len(refresh):
+            value[refresh], grad[refresh], hessian[refresh] = derivatives(
+                params[refresh], rows[refresh], near[refresh]
             )
         if progress is not None:
             progress(iterations, max_iter)
@@ -127,7 +196,10 @@ def fit_theta(
     pick = torch.arange(n_agents) * n_starts + best
     theta_free_hat = params[pick, :k]
     theta_hat = loss.theta(theta_free_hat).detach()
-    intervals = fisher_intervals(space, theta_hat, theta_free_hat, hessian[pick])
+    # the observed information at θ̂ (rows that ended on Fisher scoring get it computed now)
+    _, _, information = derivatives(params[pick], trials, torch.ones_like(near[pick]))
+    information = torch.where(near[pick, None, None], hessian[pick], information)
+    intervals = fisher_intervals(space, theta_hat, theta_free_hat, information)
     return FitResult(
         theta_hat=theta_hat,
         nuisance=params[pick, k:],
@@ -137,6 +209,62 @@ def fit_theta(
         iterations=iterations,
         names=space.names,
     )
+
+
+def _newton_decrement(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """``½ gᵀ H⁻¹ g`` per row, ``inf`` where ``H`` is not positive definite."""
+    chol, info = torch.linalg.cholesky_ex(h)
+    ok = info == 0
+    eye = torch.eye(h.shape[-1], dtype=h.dtype, device=h.device)
+    chol = torch.where(ok[:, None, None], chol, eye)
+    half = torch.linalg.solve_triangular(chol, g.unsqueeze(-1), upper=False).squeeze(-1)
+    return torch.where(ok, 0.5 * (half**2).sum(-1), torch.full_like(g[:, 0], torch.inf))
+
+
+def _damped_step(
+    h: torch.Tensor, g: torch.Tensor, damping: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Levenberg–Marquardt step of each row, damped until it lies in the trust region.
+
+    The region (``MAX_STEP`` in every unconstrained coordinate) keeps a long step from landing
+    where a logit saturates and the gradient vanishes. Raising the damping, rather than
+    shortening the step, turns the step toward the gradient along poorly determined directions
+    instead of shrinking the well-determined ones with them.
+    """
+    eye = torch.eye(h.shape[-1], dtype=h.dtype, device=h.device)
+    scale = h.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye + eye
+    for _ in range(40):
+        step = -torch.linalg.solve(h + damping.view(-1, 1, 1) * scale, g.unsqueeze(-1))
+        step = step.squeeze(-1)
+        outside = step.abs().amax(-1) > MAX_STEP
+        if not outside.any():
+            break
+        damping = torch.where(outside, damping * 4, damping)
+    return step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1), damping
+
+
+def _fisher_scoring(
+    loss: InverseRationalLoss,
+    k: int,
+    params: torch.Tensor,
+    trials: TensorDictBase,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Values ``[n]``, gradients ``[n, p]`` and a sampled Fisher information ``[n, p, p]``.
+
+    Each trial gets its own copy of the row's parameters, so one backward pass gives every
+    trial's score of data drawn from the model; trials are independent given θ, so the sum of
+    their outer products estimates the Fisher information with the draws of all trials.
+    """
+    n, n_trials = trials.shape[:2]
+    per_trial = params.detach().unsqueeze(1).expand(n, n_trials, -1).clone().requires_grad_(True)
+    with torch.enable_grad():
+        theta = loss.theta(per_trial[..., :k].reshape(n * n_trials, k)).reshape(n, n_trials, -1)
+        ll, drawn = loss.log_likelihood_and_draws(theta, per_trial[..., k:], trials, generator)
+        both = torch.stack([ll.sum(), drawn.sum()])
+        eye = torch.eye(2, dtype=both.dtype, device=both.device)
+        (scores,) = torch.autograd.grad(both, per_trial, eye, is_grads_batched=True)
+    return -ll.detach().sum(1), -scores[0].sum(1), scores[1].mT @ scores[1]
 
 
 def _screen_starts(

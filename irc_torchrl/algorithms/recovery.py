@@ -55,6 +55,7 @@ def recover_agents(
         n_starts=fit.n_starts,
         n_screen=fit.n_screen,
         max_iter=fit.max_iter,
+        curvature=fit.curvature,
         seed=seed + 2,
         progress=progress,
     )

@@ -10,14 +10,15 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.data import TensorSpec
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
-from torchrl.modules import ProbabilisticActor
+from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
 
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
 
-__all__ = ["boltzmann_policy", "simulate_agents", "first_trial_mask"]
+__all__ = ["boltzmann_policy", "motor_noise_policy", "simulate_agents", "first_trial_mask"]
 
 
 def boltzmann_policy(
@@ -36,6 +37,23 @@ def boltzmann_policy(
             spec=model.action_spec,
         ),
     )
+
+
+def motor_noise_policy(
+    actor: TensorDictSequential, spec: TensorSpec, motor_noise: float
+) -> TensorDictSequential:
+    """A continuous actor plus Gaussian motor noise, clipped to ``spec``'s bounds.
+
+    This is the agent the inverse objective's
+    :class:`~irc_torchrl.modules.likelihood.CensoredGaussianActionModel` describes; the noise
+    is TorchRL's :class:`~torchrl.modules.AdditiveGaussianModule` at a constant scale.
+    """
+    if not motor_noise > 0:
+        raise ValueError(f"motor_noise: expected a positive standard deviation, got {motor_noise}")
+    noise = AdditiveGaussianModule(
+        spec, sigma_init=float(motor_noise), sigma_end=float(motor_noise), annealing_num_steps=1
+    )
+    return TensorDictSequential(actor, noise)
 
 
 def first_trial_mask(done: torch.Tensor) -> torch.Tensor:

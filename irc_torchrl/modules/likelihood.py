@@ -1,7 +1,9 @@
 """Action likelihood models: how a rational agent's recorded action depends on its belief.
 
 Each model scores ``log p(action | features, nuisance)`` for a frozen policy or value network,
-with nuisance parameters (noise of the agent's choices) fitted beside θ.
+with nuisance parameters (noise of the agent's choices) fitted beside θ. ``log_prob_of_draw``
+scores an action drawn from the model itself instead of the recorded one: its gradient in θ is a
+sampled score, whose outer product estimates the Fisher information (Fisher scoring).
 """
 
 from __future__ import annotations
@@ -11,7 +13,20 @@ import math
 import torch
 from torch import nn
 
-__all__ = ["BoltzmannActionModel", "CensoredGaussianActionModel"]
+__all__ = ["BoltzmannActionModel", "CensoredGaussianActionModel", "gaussian_log_prob_of_draw"]
+
+
+def gaussian_log_prob_of_draw(
+    mean: torch.Tensor, var: torch.Tensor, generator: torch.Generator
+) -> torch.Tensor:
+    """``Σ log N(ã; mean, var)`` over the last dim for ``ã`` drawn from it and held fixed.
+
+    Its gradient is ``(∂mean)ᵀ ε/σ + (∂var)ᵀ (ε² − 1)/(2 var)`` with ``ε ~ N(0, 1)``: a score
+    whose expected outer product is the Gaussian's Fisher information.
+    """
+    noise = torch.randn(mean.shape, dtype=mean.dtype, generator=generator).to(mean.device)
+    draw = (mean + var.sqrt() * noise).detach()
+    return (-0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
 
 
 class BoltzmannActionModel(nn.Module):
@@ -34,6 +49,16 @@ class BoltzmannActionModel(nn.Module):
         """``log p(action)`` for integer actions ``[*B]``."""
         logp = torch.log_softmax(self.logits(features, nuisance), -1)
         return logp.gather(-1, action.long().unsqueeze(-1)).squeeze(-1)
+
+    def log_prob_of_draw(
+        self, features: torch.Tensor, nuisance: torch.Tensor, generator: torch.Generator
+    ) -> torch.Tensor:
+        """``log p(ã)`` of an action ``ã`` drawn from the model (held fixed), ``[*B]``."""
+        logp = torch.log_softmax(self.logits(features, nuisance), -1)
+        draw = torch.multinomial(
+            logp.detach().exp().reshape(-1, logp.shape[-1]), 1, generator=generator
+        )
+        return logp.gather(-1, draw.view(*logp.shape[:-1], 1)).squeeze(-1)
 
 
 class CensoredGaussianActionModel(nn.Module):
@@ -83,6 +108,13 @@ class CensoredGaussianActionModel(nn.Module):
         logp = torch.where(action >= high - self.atol, above, logp)
         return logp.sum(-1)
 
+    def log_prob_of_draw(
+        self, features: torch.Tensor, nuisance: torch.Tensor, generator: torch.Generator
+    ) -> torch.Tensor:
+        """``log p(ã)`` of an action drawn from the model (held fixed), unclipped, ``[*B]``."""
+        mean = self.actor(features).to(features.dtype)
+        return gaussian_log_prob_of_draw(mean, (2 * nuisance).exp().expand_as(mean), generator)
+
     def assimilate(
         self,
         mean: torch.Tensor,
@@ -108,12 +140,14 @@ class CensoredGaussianActionModel(nn.Module):
 
         Returns:
             ``log p(action)`` ``[*B]``, the shift of ``z``'s mean ``[*B, dz]`` and its
-            covariance ``[*B, dz, dz]`` given the action.
+            covariance ``[*B, dz, dz]`` given the action, and the predictive mean and variance
+            of each action dimension (given the dimensions before it), ``[*B, da]`` each.
         """
         low, high = self.low.to(mean.dtype), self.high.to(mean.dtype)
         noise_var = (2 * nuisance).exp()
         shift = torch.zeros_like(cov[..., 0])
         logp = torch.zeros_like(mean[..., 0])
+        means, variances = [], []
         for i in range(mean.shape[-1]):
             j = jacobian[..., i, :]
             cov_j = (cov @ j.unsqueeze(-1)).squeeze(-1)  # Σ jᵀ
@@ -138,4 +172,6 @@ class CensoredGaussianActionModel(nn.Module):
             shift = shift + cov_j * (moved / var).unsqueeze(-1)
             cov = cov - cov_j.unsqueeze(-1) * cov_j.unsqueeze(-2) * (shrink / var)[..., None, None]
             cov = 0.5 * (cov + cov.transpose(-1, -2))
-        return logp, shift, cov
+            means.append(m)
+            variances.append(var)
+        return logp, shift, cov, (torch.stack(means, -1), torch.stack(variances, -1))

@@ -3,11 +3,14 @@
 The Hessian of the negative log-likelihood at θ̂ is taken in the unconstrained coordinates the
 fit moves in; its inverse is the covariance there. 95% intervals are formed there and mapped
 back through the (monotone) transform, so they respect the bounds of θ. A parameter whose
-standard deviation spans more than a quarter of its prior range is flagged as not identified.
+interval spans more than half of its prior range is flagged as not identified;
+one that loads on a direction of zero or negative curvature (e.g. θ̂ on a bound) has no interval
+(infinite standard deviation, the whole range), while the others keep theirs.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -27,17 +30,17 @@ def batched_hessian(
     """Values ``[n]``, gradients ``[n, p]`` and Hessians ``[n, p, p]`` of independent rows.
 
     ``fn`` maps ``[n, p]`` to ``[n]`` and row ``i`` of the output depends only on row ``i``
-    of the input, so ``p`` double-backward passes give every row's Hessian at once.
+    of the input, so one double-backward pass per parameter, all ``p`` of them batched
+    (``is_grads_batched``), gives every row's Hessian at once.
     """
     params = params.detach().requires_grad_(True)
+    n, p = params.shape
     with torch.enable_grad():
         value = fn(params)
         (grad,) = torch.autograd.grad(value.sum(), params, create_graph=True)
-        rows = [
-            torch.autograd.grad(grad[:, j].sum(), params, retain_graph=j + 1 < params.shape[1])[0]
-            for j in range(params.shape[1])
-        ]
-    hessian = torch.stack(rows, 1)
+        basis = torch.eye(p, dtype=grad.dtype, device=grad.device).unsqueeze(1).expand(p, n, p)
+        (columns,) = torch.autograd.grad(grad, params, basis, is_grads_batched=True)
+    hessian = columns.movedim(0, 1)
     return value.detach(), grad.detach(), 0.5 * (hessian + hessian.transpose(1, 2)).detach()
 
 
@@ -50,6 +53,10 @@ class Intervals:
     high: torch.Tensor
     identified: torch.Tensor
     covariance: torch.Tensor
+
+    def select(self, rows: torch.Tensor) -> Intervals:
+        """The agents ``rows`` (an index or mask)."""
+        return Intervals(*(getattr(self, f.name)[rows] for f in dataclasses.fields(self)))
 
 
 def fisher_intervals(
@@ -64,25 +71,27 @@ def fisher_intervals(
     k = int(free.sum())
     eigval, eigvec = torch.linalg.eigh(hessian)
     positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
-    inv_eig = torch.where(
-        positive, 1 / eigval.clamp_min(1e-300), torch.full_like(eigval, torch.inf)
-    )
-    cov_u = (eigvec * inv_eig.nan_to_num(posinf=1e12).unsqueeze(-2)) @ eigvec.transpose(-1, -2)
+    # a direction of zero or negative curvature leaves the parameters that load on it without
+    # an interval (infinite), and only those
+    loading = eigvec[:, :k] ** 2  # [n, k parameters, p directions]
+    unbounded = ((loading > 1e-8) & ~positive.unsqueeze(1)).any(-1)
+    inv_eig = torch.where(positive, 1 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+    cov_u = (eigvec * inv_eig.unsqueeze(-2)) @ eigvec.transpose(-1, -2)
     var_u = cov_u.diagonal(dim1=-2, dim2=-1)[:, :k]
-    degenerate = ~positive.all(-1, keepdim=True)
-    sd_u = torch.where(degenerate, torch.full_like(var_u, torch.inf), var_u.clamp_min(0).sqrt())
+    sd_u = torch.where(unbounded, torch.full_like(var_u, torch.inf), var_u.clamp_min(0).sqrt())
     # dθ/du of the scaled logit, for the delta-method standard deviation in natural units
     low, high = space.low(theta_hat.dtype)[free], space.high(theta_hat.dtype)[free]
     slope = (theta_hat[:, free] - low) * (high - theta_hat[:, free]) / (high - low)
-    std_free = (sd_u * slope).nan_to_num(posinf=torch.inf)
+    std_free = torch.where(unbounded, torch.full_like(sd_u, torch.inf), sd_u * slope)
     ci_low_free = space.from_unconstrained(_embed(space, theta_free_hat - Z95 * sd_u, n))[:, free]
     ci_high_free = space.from_unconstrained(_embed(space, theta_free_hat + Z95 * sd_u, n))[:, free]
     std = torch.zeros(n, d, dtype=theta_hat.dtype)
     std[:, free] = std_free
     ci_low, ci_high = theta_hat.clone(), theta_hat.clone()
     ci_low[:, free], ci_high[:, free] = ci_low_free, ci_high_free
-    normalised_sd = 2 * std / (space.high(theta_hat.dtype) - space.low(theta_hat.dtype))
-    identified = (normalised_sd < 0.5) & ~degenerate
+    # judged by the interval's width, not the delta-method sd, which vanishes on a bound
+    width = (ci_high - ci_low) / (space.high(theta_hat.dtype) - space.low(theta_hat.dtype))
+    identified = (width < 0.5) & torch.isfinite(std)
     covariance = cov_u[:, :k, :k] * slope.unsqueeze(-1) * slope.unsqueeze(-2)
     return Intervals(
         std=std, low=ci_low, high=ci_high, identified=identified, covariance=covariance

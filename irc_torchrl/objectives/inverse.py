@@ -107,45 +107,81 @@ class InverseRationalLoss(LossModule):
         return torch.where(space.free_mask.to(theta_free.device), natural, full)
 
     def log_likelihood(
-        self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
+        self,
+        theta: torch.Tensor,
+        nuisance: torch.Tensor,
+        trials: TensorDictBase,
+        per_trial: bool = False,
     ) -> torch.Tensor:
-        """Log-likelihood per agent ``[n_agents]`` of trials ``[n_agents, n_trials, T]``."""
+        """Log-likelihood of trials ``[n_agents, n_trials, T]``: per agent ``[n_agents]``.
+
+        θ ``[n_agents, d]`` and the nuisance ``[n_agents, dn]`` may also be given per trial
+        (``[n_agents, n_trials, ·]``); with ``per_trial`` each trial's own log-likelihood
+        ``[n_agents, n_trials]`` is returned (what per-trial scores are made of).
+        """
+        total, _ = self.log_likelihood_and_draws(theta, nuisance, trials)
+        return total if per_trial else total.sum(1)
+
+    def log_likelihood_and_draws(
+        self,
+        theta: torch.Tensor,
+        nuisance: torch.Tensor,
+        trials: TensorDictBase,
+        generator: torch.Generator | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Per-trial log-likelihood ``[n_agents, n_trials]`` and, with ``generator``, the
+        log-probability of data drawn from the model along the same filter (held fixed).
+
+        The gradient of the second is a sampled score: its outer product summed over trials
+        estimates the Fisher information (what ``fit_theta(curvature="fisher")`` steps with).
+        """
         keys = self.tensor_keys
         dtype = theta.dtype
         state = trials[keys.state].to(dtype)
         target = trials[keys.target][:, :, 0].to(dtype)
         action, mask = trials[keys.action], trials[keys.mask]
-        theta_b = theta.unsqueeze(1).expand(*state.shape[:2], -1)
+        theta_b, nuisance_b = (
+            x if x.dim() == 3 else x.unsqueeze(1).expand(*state.shape[:2], -1)
+            for x in (theta, nuisance)
+        )
         if self.method == "marginal":
-            nuisance_b = nuisance.unsqueeze(1).expand(*state.shape[:2], -1)
             task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
-            logp = marginal_filter(
+            logp, *_, draws = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action.to(dtype),
-                target, task_theta, mask,
-            )[0]  # fmt: skip
-            total = torch.where(mask, logp, torch.zeros_like(logp)).sum((1, 2))
+                target, task_theta, mask, generator,
+            )  # fmt: skip
+            total = torch.where(mask, logp, torch.zeros_like(logp)).sum(2)
+            drawn = torch.where(mask, draws, torch.zeros_like(draws)).sum(2)
         else:
-            total = self._map_log_likelihood(theta_b, nuisance, state, action, target, mask)
+            total, drawn = self._map_log_likelihood(
+                theta_b, nuisance_b, state, action, target, mask, generator
+            )
         if self.world == "shared":
-            total = total + self._transition_log_likelihood(theta_b, state, action, mask)
-        return total
+            moved, moved_drawn = self._transition_log_likelihood(
+                theta_b, state, action, mask, generator
+            )
+            total, drawn = total + moved, drawn + moved_drawn
+        return total, drawn if generator is not None else None
 
-    def _map_log_likelihood(self, theta_b, nuisance, state, action, target, mask) -> torch.Tensor:
+    def _map_log_likelihood(
+        self, theta_b, nuisance_b, state, action, target, mask, generator
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The hard E-step: beliefs along the most probable observations, then the actions."""
-        dtype = theta_b.dtype
         means, covs = self.beliefs(theta_b, state, action, target)
         steps = torch.arange(state.shape[2], device=state.device).view(1, 1, -1, 1)
         features = self.model.belief_features(
             means, covs, target.unsqueeze(2), steps, theta_b.unsqueeze(2)
+        )[mask]  # score only the recorded steps: trials end at different times
+        nuisance = nuisance_b.unsqueeze(2).expand(*mask.shape, -1)[mask]
+        logp = self.action_model.log_prob(features, action[mask], nuisance)
+        drawn = (
+            self.action_model.log_prob_of_draw(features, nuisance, generator)
+            if generator is not None
+            else torch.zeros_like(logp)
         )
-        # score only the recorded steps: trials end at different times
-        agent = (
-            torch.arange(state.shape[0], device=state.device).view(-1, 1, 1).expand_as(mask)[mask]
-        )
-        logp = self.action_model.log_prob(features[mask], action[mask], nuisance[agent])
-        return torch.zeros(state.shape[0], dtype=dtype, device=state.device).index_add(
-            0, agent, logp
-        )
+        per_trial = torch.zeros(2, *mask.shape, dtype=logp.dtype, device=state.device)
+        per_trial = per_trial.masked_scatter(mask, torch.stack([logp, drawn]))
+        return per_trial[0].sum(2), per_trial[1].sum(2)
 
     def recovered_beliefs(
         self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
@@ -165,7 +201,7 @@ class InverseRationalLoss(LossModule):
         if self.method == "marginal":
             nuisance_b = nuisance.unsqueeze(1).expand(*state.shape[:2], -1)
             task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
-            _, mean, cov, mean_cov = marginal_filter(
+            _, mean, cov, mean_cov, _ = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action, target,
                 task_theta, trials[keys.mask],
             )  # fmt: skip
@@ -199,18 +235,31 @@ class InverseRationalLoss(LossModule):
             covs.append(cov)
         return torch.stack(means, 2), torch.stack(covs, 2)
 
-    def _transition_log_likelihood(self, theta_b, state, action, mask) -> torch.Tensor:
-        """``Σ log N(s_{t+1}; f(s_t, a_t, θ), Q(θ))`` over consecutive valid steps."""
+    def _transition_log_likelihood(
+        self, theta_b, state, action, mask, generator
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per trial ``Σ log N(s_{t+1}; f(s_t, a_t, θ), Q(θ))`` over consecutive valid steps,
+        and the same for next states drawn from that Gaussian with ``generator`` (else 0)."""
         prev, nxt = state[:, :, :-1], state[:, :, 1:]
         theta_t = theta_b.unsqueeze(2).expand(*prev.shape[:3], -1)
         mean = self.model.transition(prev, action[:, :, :-1], theta_t)
         cov = self.model.process_cov(prev, action[:, :, :-1], theta_t)
         chol = torch.linalg.cholesky(cov)
-        z = torch.linalg.solve_triangular(chol, (nxt - mean).unsqueeze(-1), upper=False).squeeze(-1)
-        logp = -0.5 * (z**2).sum(-1) - chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        logp = logp - 0.5 * state.shape[-1] * math.log(2 * math.pi)
         valid = mask[:, :, :-1] & mask[:, :, 1:]
-        return torch.where(valid, logp, torch.zeros_like(logp)).sum((1, 2))
+
+        def log_prob(x: torch.Tensor) -> torch.Tensor:
+            z = torch.linalg.solve_triangular(chol, (x - mean).unsqueeze(-1), upper=False)
+            logp = -0.5 * (z.squeeze(-1) ** 2).sum(-1) - chol.diagonal(dim1=-2, dim2=-1).log().sum(
+                -1
+            )
+            logp = logp - 0.5 * state.shape[-1] * math.log(2 * math.pi)
+            return torch.where(valid, logp, torch.zeros_like(logp)).sum(2)
+
+        if generator is None:
+            return log_prob(nxt), torch.zeros(valid.shape[:2], dtype=state.dtype)
+        noise = torch.randn(nxt.shape, dtype=nxt.dtype, generator=generator).to(nxt.device)
+        drawn = (mean + (chol @ noise.unsqueeze(-1)).squeeze(-1)).detach()
+        return log_prob(nxt), log_prob(drawn)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         if tensordict.ndim != 3 or tensordict.shape[0] != self.theta_free.shape[0]:

@@ -24,7 +24,7 @@ from torch.func import vjp, vmap
 
 from irc_torchrl.envs.belief import ekf_gain, ekf_predict, joseph_update
 from irc_torchrl.envs.model import TaskModel
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.modules.likelihood import CensoredGaussianActionModel, gaussian_log_prob_of_draw
 
 __all__ = ["marginal_filter"]
 
@@ -39,7 +39,8 @@ def marginal_filter(
     target: torch.Tensor,
     task_theta: torch.Tensor,
     mask: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
     Args:
@@ -50,11 +51,15 @@ def marginal_filter(
         target: ``[*B, dt]``.
         mask: the recorded steps ``[*B, T]``; a trial is filtered up to its last recorded step
             only (trials of a dataset differ in length), later outputs are zero.
+        generator: if given, each step also scores an action drawn from its predictive
+            distribution (:func:`~irc_torchrl.modules.likelihood.gaussian_log_prob_of_draw`).
 
     Returns:
         per-step ``log p(a_t | a_{<t}, s)`` ``[*B, T]``; the recovered belief mean
         ``E[z_t | a_{≤t}]`` ``[*B, T, ds]``; the agent's own belief covariance ``P_t``
-        ``[*B, T, ds, ds]``; and the uncertainty of the recovered mean ``[*B, T, ds, ds]``.
+        ``[*B, T, ds, ds]``; the uncertainty of the recovered mean ``[*B, T, ds, ds]``; and
+        per step the log-probability of the drawn action ``[*B, T]`` (zeros without
+        ``generator``).
     """
     batch, steps = state.shape[:-2], state.shape[-2]
     flat = batch.numel()
@@ -66,7 +71,7 @@ def marginal_filter(
         length = recorded.amax(-1)
     # longest trials first: the trials still running at step t are a prefix of the rows
     order = length.argsort(descending=True, stable=True)
-    running = (length[order].unsqueeze(0) > torch.arange(steps, device=state.device)[:, None])
+    running = length[order].unsqueeze(0) > torch.arange(steps, device=state.device)[:, None]
     running = running.sum(-1).tolist()
     theta, nuisance, target, task_theta = (
         x.reshape(flat, x.shape[-1])[order] for x in (theta, nuisance, target, task_theta)
@@ -78,7 +83,7 @@ def marginal_filter(
     def policy(z, p, tg, step, th):
         return action_model.actor(model.belief_features(z, p, tg, step, th))
 
-    logps, means, covs, outers = [], [], [], []
+    logps, means, covs, outers, draws = [], [], [], [], []
     for t in range(steps):
         n = running[t]
         if n == 0:
@@ -86,9 +91,11 @@ def marginal_filter(
         mean, cov, outer = mean[:n], cov[:n], outer[:n]
         step = torch.full((n, 1), t, dtype=torch.long, device=state.device)
         out, jac = _rowwise_jacobian(policy, mean, cov, target[:n], step, theta[:n])
-        logp, shift, outer = action_model.assimilate(
+        logp, shift, outer, (m, var) = action_model.assimilate(
             out, jac, outer, action[:n, t], nuisance[:n]
         )
+        if generator is not None:
+            draws.append(gaussian_log_prob_of_draw(m, var, generator))
         mean = mean + shift
         logps.append(logp)
         means.append(mean)
@@ -115,7 +122,8 @@ def marginal_filter(
         out = torch.stack(padded, 1)[unsort]
         return out.reshape(*batch, steps, *out.shape[2:])
 
-    return stack(logps), stack(means), stack(covs), stack(outers)
+    draws = stack(draws) if draws else torch.zeros_like(stack(logps))
+    return stack(logps), stack(means), stack(covs), stack(outers), draws
 
 
 def _rowwise_jacobian(

@@ -1,0 +1,446 @@
+"""Recorded trials on the 2D task: simulate agents into files, fit θ from files, keep beliefs.
+
+:func:`simulate_recordings` (``irc simulate``) lets agents with a chosen or prior-drawn θ act by
+a trained ensemble policy plus motor noise and writes one recording per agent, in any format of
+:mod:`irc_torchrl.data.io`, with the true θ in ``summary.json``. :func:`fit_recordings`
+(``irc fit``) reads recordings (one agent each), fits every agent's θ with 95% intervals
+(Algorithm 2, actions scored by :class:`CensoredGaussianActionModel` around the same policy),
+and writes ``summary.json``, the recovered beliefs and figures. A recording written by
+``irc simulate`` is scored against the truth found in its folder's ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tqdm.auto import tqdm
+
+import irc_torchrl
+from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
+from irc_torchrl.algorithms.fit import FitResult, fit_theta
+from irc_torchrl.algorithms.recovery import score_recovery
+from irc_torchrl.algorithms.runtime import torch_settings
+from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
+from irc_torchrl.data.files import atomic_path, write_json
+from irc_torchrl.data.io import read_trials, write_trials
+from irc_torchrl.data.trajectories import TRIAL_KEYS
+from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.objectives.fisher import Intervals
+from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
+from irc_torchrl.plots import report_run
+from irc_torchrl.theta import ThetaSpace
+
+__all__ = [
+    "FORMATS",
+    "FIT_METHODS",
+    "fit_recordings",
+    "fit_space",
+    "format_fit",
+    "resolve_device",
+    "simulate_recordings",
+]
+
+#: file suffix per ``--format`` (memmap: a TensorDict folder, no suffix)
+FORMATS = {"csv": ".csv", "npz": ".npz", "nwb": ".nwb", "memmap": ""}
+#: what ``--method`` accepts: one estimator, or both (marginal reported, map kept beside it)
+FIT_METHODS = (*METHODS, "both")
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device called ``name``, refused early when this machine has none of it."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as error:
+        raise ValueError(f"device: {error}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: {name!r} requested but torch.cuda.is_available() is False")
+    return device
+
+
+def _theta_values(values: dict, field: str) -> dict[str, float]:
+    """``{name: float}`` from config values, refusing anything that is not a number."""
+    out = {}
+    for name, value in values.items():
+        try:
+            out[str(name)] = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"config: {field}.{name}={value!r} is not a number") from None
+    return out
+
+
+def simulate_recordings(
+    config: SimulateConfig,
+    out: str | Path,
+    checkpoint: str | Path = TASK,
+    file_format: str = "csv",
+    seed: int = 0,
+    device: str = "cpu",
+    progress: bool = True,
+    task: str = TASK,
+) -> dict[str, Any]:
+    """Simulate ``config.n_agents`` agents and write one recording per agent into ``out``.
+
+    Each agent's θ is ``config.theta`` where given and a prior draw (seeded) elsewhere; the
+    world's θ is ``config.task_theta`` over the θ space's default. Returns the ``summary.json``
+    written beside the recordings (the true θ of every file).
+    """
+    if task != TASK:
+        raise ValueError(f"task: recordings are simulated for {TASK!r} only, got {task!r}")
+    if file_format not in FORMATS:
+        raise ValueError(f"format: expected one of {sorted(FORMATS)}, got {file_format!r}")
+    config.validate()
+    target = resolve_device(device)
+    out = Path(out)
+    with torch_settings(config.threads, True):
+        start = time.perf_counter()
+        actor, model, ckpt = load_ensemble_policy(checkpoint)
+        actor = actor.to(target)
+        space = model.theta_space
+        prior = space.sample((config.n_agents,), generator=torch.Generator().manual_seed(seed))
+        theta = space.from_dict(_theta_values(config.theta, "theta"), prior, "theta")
+        world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
+        policy = motor_noise_policy(actor, model.action_spec.to(target), config.motor_noise)
+        trials = simulate_agents(
+            model, policy, theta.to(target), config.n_trials, world.to(target), seed=seed + 1
+        ).cpu()
+        simulate_s = time.perf_counter() - start
+        agents = []
+        for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
+            name = f"agent{i}{FORMATS[file_format]}"
+            write_trials(trials[i].select(*TRIAL_KEYS), out / name, model)
+            agents.append(
+                {
+                    "file": name,
+                    "theta_true": space.to_dict(theta[i]),
+                    "n_trials": config.n_trials,
+                    "mean_steps": float(trials[i]["mask"].sum(-1).double().mean()),
+                }
+            )
+    summary = {
+        "task": TASK,
+        "command": "simulate",
+        "seed": seed,
+        "checkpoint": str(ckpt["path"]),
+        "format": file_format,
+        "config": config_to_dict(config),
+        "task_theta": space.to_dict(world),
+        "units": _units(space),
+        "agents": agents,
+        "timings": {"simulate_s": simulate_s, "write_s": time.perf_counter() - start - simulate_s},
+    }
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> ThetaSpace:
+    """``space`` with only ``free`` fitted (when ``None``: its free parameters not in ``fixed``).
+
+    The others are held at ``fixed[name]`` where given, else at their default.
+    """
+    values = _theta_values(fixed, "theta")
+    for name in values:
+        space[name]  # unknown names: a KeyError listing the valid ones
+    names = [n for n in space.free_names if n not in values] if free is None else list(free)
+    for name in names:
+        space[name]
+        if name in space.fixed:
+            raise ValueError(
+                f"free: {name!r} is fixed at {space.fixed[name]} in the checkpoint's θ space; "
+                f"free parameters: {', '.join(space.free_names)}"
+            )
+        if name in values:
+            raise ValueError(f"free: {name!r} is both fitted (--free) and fixed (theta.{name})")
+    if not names:
+        raise ValueError("free: no parameter to fit")
+    default = space.default(torch.float64)
+    held = {
+        n: values.get(n, float(default[space.index(n)])) for n in space.free_names if n not in names
+    }
+    return space.fix(**held)
+
+
+def _units(space: ThetaSpace) -> dict[str, str]:
+    return {p.name: p.unit for p in space.parameters}
+
+
+def _simulated_truth(path: Path) -> dict[str, float] | None:
+    """The true θ of a recording written by ``irc simulate`` (its folder's summary), if any."""
+    summary = path.parent / "summary.json"
+    try:
+        data = json.loads(summary.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("command") != "simulate":
+        return None
+    for agent in data.get("agents", []):
+        if agent.get("file") == path.name:
+            return agent.get("theta_true")
+    return None
+
+
+def _labels(paths: Sequence[Path]) -> list[str]:
+    """A short unique name per recording (its stem, numbered where stems repeat)."""
+    stems = [p.stem for p in paths]
+    return [s if stems.count(s) == 1 else f"{s}_{i}" for i, s in enumerate(stems)]
+
+
+def _pad_steps(trials: TensorDictBase, steps: int) -> TensorDictBase:
+    """Held trials ``[n, T]`` padded to ``steps`` by repeating the last step, unrecorded."""
+    n, length = trials.shape
+    if length == steps:
+        return trials
+    tail = trials[:, -1:].expand(n, steps - length).clone()
+    tail["mask"] = torch.zeros(n, steps - length, dtype=torch.bool)
+    return torch.cat([trials, tail], 1)
+
+
+def _concat(results: list[FitResult]) -> FitResult:
+    """One :class:`FitResult` over the agents of several fits, in order, on the CPU."""
+    fields = [f.name for f in dataclasses.fields(Intervals)]
+
+    def cat(tensors: list[torch.Tensor]) -> torch.Tensor:
+        return torch.cat([t.cpu() for t in tensors])
+
+    return FitResult(
+        theta_hat=cat([r.theta_hat for r in results]),
+        nuisance=cat([r.nuisance for r in results]),
+        log_likelihood=cat([r.log_likelihood for r in results]),
+        intervals=Intervals(*(cat([getattr(r.intervals, f) for r in results]) for f in fields)),
+        converged=cat([r.converged for r in results]),
+        iterations=max(r.iterations for r in results),
+        names=results[0].names,
+    )
+
+
+def fit_recordings(
+    paths: Sequence[str | Path],
+    out: str | Path,
+    config: RecordingFitConfig,
+    checkpoint: str | Path = TASK,
+    method: str = "marginal",
+    free: Sequence[str] | None = None,
+    seed: int = 0,
+    device: str = "cpu",
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Fit θ for each recording (one agent per file) and write the results into ``out``.
+
+    ``method="marginal"`` starts from the ``map`` fit (the paper's estimator) and integrates
+    over the agent's unseen observations; ``"both"`` keeps both results. Recordings with the
+    same number of trials are fitted in one batched call (an agent's θ̂ does not depend on
+    the others). Writes ``summary.json``, ``beliefs.npz`` (the agent's belief at every
+    recorded step under θ̂) and figures; returns the summary.
+    """
+    if method not in FIT_METHODS:
+        raise ValueError(f"method: expected one of {FIT_METHODS}, got {method!r}")
+    if not paths:
+        raise ValueError("fit: no recording given")
+    config.validate()
+    target = resolve_device(device)
+    paths = [Path(p) for p in paths]
+    out = Path(out)
+    with torch_settings(config.threads, True):
+        actor, model, ckpt = load_ensemble_policy(checkpoint)
+        space = fit_space(model.theta_space, free, config.theta)
+        start = time.perf_counter()
+        units = {str(k): str(v) for k, v in config.units.items()}
+        recordings = [read_trials(p, model, units=units) for p in paths]
+        read_s = time.perf_counter() - start
+        truths = [_simulated_truth(p) for p in paths]
+        spec = model.action_spec
+        action_model = CensoredGaussianActionModel(
+            FeaturePolicy(actor), spec.space.low, spec.space.high, config.motor_noise
+        )
+        fits, beliefs, timings = _fit_groups(
+            model, action_model, space, recordings, config, method, seed, target, progress
+        )
+    timings = {"read_s": read_s, **timings}
+    labels = _labels(paths)
+    known = all(t is not None for t in truths)
+    theta_true = (
+        torch.stack([space.from_dict(t, field="theta_true") for t in truths]) if known else None
+    )
+    by_method = {
+        name: _scored(space, result, theta_true, paths, labels, recordings)
+        for name, result in fits.items()
+    }
+    primary = "marginal" if method in ("marginal", "both") else "map"
+    summary = {
+        "task": TASK,
+        "command": "fit",
+        "method": method,
+        "seed": seed,
+        "version": irc_torchrl.__version__,
+        "checkpoint": str(ckpt["path"]),
+        "free": space.free_names,
+        "fixed": {n: space.fixed[n] for n in space.names if n in space.fixed},
+        "config": config_to_dict(config),
+        "units": _units(space),
+        **by_method[primary],
+        "timings": timings,
+    }
+    if method == "both":
+        summary["methods"] = by_method
+    summary["state_names"] = list(model.state_names)
+    summary["state_units"] = list(model.state_units)
+    _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs)
+    write_json(out / "summary.json", summary)
+    report_run(out)
+    return summary
+
+
+def _fit_groups(
+    model: TaskModel,
+    action_model: CensoredGaussianActionModel,
+    space: ThetaSpace,
+    recordings: list[TensorDict],
+    config: RecordingFitConfig,
+    method: str,
+    seed: int,
+    device: torch.device,
+    progress: bool,
+) -> tuple[dict[str, FitResult], list[TensorDict], dict[str, float]]:
+    """Fit every recording, batching those with equal trial counts; per method and per file.
+
+    Returns the fit per method (agents in the order of ``recordings``), each recording's
+    beliefs under the primary method's θ̂ (``[n_trials, T]``) and the time of each method.
+    """
+    groups: dict[int, list[int]] = {}
+    for i, recording in enumerate(recordings):
+        groups.setdefault(recording.shape[0], []).append(i)
+    methods = ["map"] if method == "map" else ["map", "marginal"]
+    parts: dict[str, list[tuple[list[int], FitResult]]] = {m: [] for m in methods}
+    beliefs: list[TensorDict | None] = [None] * len(recordings)
+    timings = {f"fit_{m}_s": 0.0 for m in methods}
+    for members in groups.values():
+        steps = max(recordings[i].shape[1] for i in members)
+        held = torch.stack(
+            [_pad_steps(recordings[i].select(*TRIAL_KEYS), steps) for i in members]
+        ).to(device)
+        starts = None
+        for name in methods:
+            start = time.perf_counter()
+            loss = InverseRationalLoss(
+                model, action_model, theta_space=space, n_agents=len(members), method=name
+            ).to(device)
+            desc = f"fit {name}: {len(members)} recording(s) of {held.shape[1]} trials"
+            with tqdm(total=config.max_iter, desc=desc, disable=not progress) as bar:
+                result = fit_theta(
+                    loss,
+                    held,
+                    n_starts=config.n_starts,
+                    n_screen=config.n_screen,
+                    max_iter=config.max_iter,
+                    seed=seed,
+                    curvature="fisher",
+                    starts=starts,
+                    progress=lambda i, n: bar.update(1),
+                )
+            starts = result.theta_hat
+            parts[name].append((members, result))
+            if name == methods[-1]:
+                recovered = loss.recovered_beliefs(result.theta_hat, result.nuisance, held).cpu()
+                for j, i in enumerate(members):
+                    beliefs[i] = recovered[j, :, : recordings[i].shape[1]]
+            timings[f"fit_{name}_s"] += time.perf_counter() - start
+    fits = {}
+    for name, pieces in parts.items():
+        order = [i for members, _ in pieces for i in members]
+        combined = _concat([r for _, r in pieces])
+        rank = torch.tensor(order).argsort()
+        fits[name] = combined.select(rank)
+    timings["fit_s"] = sum(timings.values())
+    return fits, beliefs, timings
+
+
+def _scored(
+    space: ThetaSpace,
+    result: FitResult,
+    theta_true: torch.Tensor | None,
+    paths: list[Path],
+    labels: list[str],
+    recordings: list[TensorDict],
+) -> dict[str, Any]:
+    """The summary's ``agents`` (and, with the truth, ``parameters``) of one method's fit."""
+    if theta_true is not None:
+        scored = score_recovery(space.free_names, space.names, theta_true, result)
+    else:
+        scored = {"agents": [result.agent(i) for i in range(len(paths))]}
+    for i, agent in enumerate(scored["agents"]):
+        agent.pop("nuisance", None)
+        agent.update(
+            file=str(paths[i]),
+            label=labels[i],
+            n_trials=int(recordings[i].shape[0]),
+            n_steps=int(recordings[i]["mask"].sum()),
+            motor_noise=[math.exp(float(v)) for v in result.nuisance[i]],
+        )
+    return scored
+
+
+def _belief_arrays(recording: TensorDict, belief: TensorDict) -> dict[str, np.ndarray]:
+    """What the belief figures and ``beliefs.npz`` hold for one recording."""
+    return {
+        "time": recording["time"].numpy(),
+        "mask": recording["mask"].numpy(),
+        "state": recording["state"].numpy(),
+        "target": recording["target"].numpy(),
+        "mean": belief["belief", "mean"].numpy(),
+        "cov": belief["belief", "cov"].numpy(),
+        "mean_cov": belief["belief", "mean_cov"].numpy(),
+    }
+
+
+def _write_beliefs(
+    path: Path, labels: list[str], recordings: list[TensorDict], beliefs: list[TensorDict]
+) -> None:
+    """``beliefs.npz``: ``<label>/<array>`` for every recording (see :func:`_belief_arrays`)."""
+    arrays = {
+        f"{label}/{key}": value
+        for label, recording, belief in zip(labels, recordings, beliefs, strict=True)
+        for key, value in _belief_arrays(recording, belief).items()
+    }
+    with atomic_path(path, suffix=".tmp.npz") as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def format_fit(summary: dict[str, Any]) -> str:
+    """A readable table per recording: θ̂, its 95% interval, the truth if known, identified."""
+    units = summary.get("units", {})
+    lines = []
+    for method, part in (summary.get("methods") or {summary["method"]: summary}).items():
+        for agent in part["agents"]:
+            truth = agent.get("theta_true")
+            status = "converged" if agent["converged"] else "NOT converged (raise max_iter)"
+            lines.append(
+                f"{agent['file']} ({method}): {agent['n_trials']} trials, {agent['n_steps']} "
+                f"steps, log-likelihood {agent['log_likelihood']:.1f}, {status}"
+            )
+            # 'θ̂' is two code points shown as one character: pad it one wider
+            header = f"  {'parameter':<13}{'θ̂':>10}  {'95% CI':<21}"
+            header += f"{'true':>9}  " if truth else ""
+            lines.append(header + f"{'identified':<11}unit")
+            for name in summary["free"]:
+                ci = f"[{agent['ci_low'][name]:.4g}, {agent['ci_high'][name]:.4g}]"
+                row = f"  {name:<13}{agent['theta_hat'][name]:>9.4g}  {ci:<21}"
+                row += f"{truth[name]:>9.4g}  " if truth else ""
+                row += f"{'yes' if agent['identified'][name] else 'NO':<11}{units.get(name, '')}"
+                lines.append(row)
+            noise = ", ".join(f"{v:.3g}" for v in agent["motor_noise"])
+            lines.append(f"  motor noise std (fitted): {noise}")
+        if "parameters" in part:
+            covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part["parameters"].items())
+            lines.append(f"{method}: truth inside the 95% interval (fraction of files): {covered}")
+    return "\n".join(lines)

@@ -1,0 +1,54 @@
+"""The tutorials in examples/ run as documented and do what they say (about 40 s together)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _run(script: str, out: Path) -> tuple[str, dict]:
+    done = subprocess.run(
+        [sys.executable, str(EXAMPLES / script), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout, json.loads((out / "results.json").read_text())
+
+
+def test_fit_your_recording_recovers_the_gains_within_their_intervals(tmp_path):
+    stdout, fit = _run("fit_your_recording.py", tmp_path)
+    # the recording is in cm and degrees, read back in m and rad
+    header = (tmp_path / "session.csv").read_text().splitlines()[0]
+    assert header == "trial,time,x,y,heading,v,w,a_v,a_w,target_x,target_y"
+    assert "read" in stdout and "30 trials" in stdout
+    for name in ("g_v", "g_w"):  # well identified: the marginal fit's interval holds the truth
+        truth = fit["theta_true"][name]
+        assert fit["identified"][name]
+        assert fit["ci_low"][name] <= truth <= fit["ci_high"][name]
+        assert fit["theta_hat"][name] == pytest.approx(truth, rel=0.03)
+        assert f"{truth:>6.3f}  yes" in stdout
+    assert fit["converged"]
+    assert (tmp_path / "beliefs.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_assemble_in_torchrl_trains_ddpg_and_steps_the_inverse(tmp_path):
+    stdout, results = _run("assemble_in_torchrl.py", tmp_path)
+    ddpg, inverse = results["ddpg"], results["inverse"]
+    assert ddpg["updates"] == 12 and len(ddpg["losses"]) == 12
+    assert results["finite"]
+    assert all(math.isfinite(v) for row in ddpg["losses"] for v in row.values())
+    assert ddpg["target_moved"] > 0  # SoftUpdate moved the target networks
+    nll = inverse["nll"]
+    assert len(nll) == 10 and all(math.isfinite(v) for v in nll)
+    assert nll[-1] < nll[0]  # Adam on θ and the motor noise lowers the negative log-likelihood
+    assert "DDPG: 12 updates" in stdout and "IRC: negative log-likelihood" in stdout
