@@ -104,7 +104,7 @@ def fit_theta(
         raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
-    n_agents = trials.shape[0]
+    n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
     k = int(free.sum())
     if starts is not None:
@@ -115,7 +115,7 @@ def fit_theta(
                 f"got {list(starts.shape)}"
             )
         nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
-        params = torch.cat([space.to_unconstrained(starts)[:, free], nuisance], -1)
+        params = torch.cat([space.to_unconstrained(starts.cpu())[:, free], nuisance], -1)
         n_starts = 1
     else:
         params = _screen_starts(loss, trials, n_screen, n_starts, seed)
@@ -128,6 +128,7 @@ def fit_theta(
     def nll(p: torch.Tensor, data: TensorDictBase) -> torch.Tensor:
         return -loss.log_likelihood(loss.theta(p[:, :k]), p[:, k:], data)
 
+    params = params.to(device)
     draws = torch.Generator().manual_seed(seed)
 
     def derivatives(p: torch.Tensor, data: TensorDictBase, exact: torch.Tensor):
@@ -148,14 +149,14 @@ def fit_theta(
 
     # rows near θ̂ step with the exact Hessian (Newton converges quadratically there);
     # Fisher scoring brings the others near
-    near = torch.full((params.shape[0],), curvature == "hessian")
+    near = torch.full((params.shape[0],), curvature == "hessian", device=device)
     value, grad, hessian = derivatives(params, rows, near)
-    damping = torch.full((params.shape[0],), 1e-3, dtype=torch.float64)
-    converged = torch.zeros(params.shape[0], dtype=torch.bool)
+    damping = torch.full((params.shape[0],), 1e-3, dtype=torch.float64, device=device)
+    converged = torch.zeros(params.shape[0], dtype=torch.bool, device=device)
     stalled = torch.zeros_like(converged)  # no step improves: stop, but do not claim θ̂
     # iterations in a row without a gain of ``tol``: a flat top (e.g. θ̂ on a bound, where
     # the unconstrained coordinate drifts off with vanishing gradient and curvature)
-    idle = torch.zeros(params.shape[0], dtype=torch.long)
+    idle = torch.zeros(params.shape[0], dtype=torch.long, device=device)
     iterations = 0
     for iterations in range(1, max_iter + 1):
         # only rows still moving cost work; a rejected step leaves a row's derivatives valid
@@ -193,7 +194,7 @@ def fit_theta(
         if (converged | stalled).all():
             break
     best = value.view(n_agents, n_starts).argmin(1)
-    pick = torch.arange(n_agents) * n_starts + best
+    pick = torch.arange(n_agents, device=device) * n_starts + best
     theta_free_hat = params[pick, :k]
     theta_hat = loss.theta(theta_free_hat).detach()
     # the observed information at θ̂ (rows that ended on Fisher scoring get it computed now)
@@ -285,8 +286,8 @@ def _screen_starts(
     draws = space.default(torch.float64).expand(n_screen, -1).clone()
     draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
     draws[0] = space.default(torch.float64)
-    u = space.to_unconstrained(draws)[:, free]
-    nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
+    u = space.to_unconstrained(draws)[:, free].to(trials.device)
+    nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1).to(trials.device)
     with torch.no_grad():
         scores = torch.stack(
             [

@@ -67,7 +67,8 @@ def fisher_intervals(
     Fixed parameters get zero width. ``hessian`` is ``[n, p, p]`` with the free θ first.
     """
     n, d = theta_hat.shape
-    free = space.free_mask
+    device = theta_hat.device
+    free = space.free_mask.to(device)
     k = int(free.sum())
     eigval, eigvec = torch.linalg.eigh(hessian)
     positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
@@ -80,17 +81,18 @@ def fisher_intervals(
     var_u = cov_u.diagonal(dim1=-2, dim2=-1)[:, :k]
     sd_u = torch.where(unbounded, torch.full_like(var_u, torch.inf), var_u.clamp_min(0).sqrt())
     # dθ/du of the scaled logit, for the delta-method standard deviation in natural units
-    low, high = space.low(theta_hat.dtype)[free], space.high(theta_hat.dtype)[free]
+    low, high = (b(theta_hat.dtype, device)[free] for b in (space.low, space.high))
     slope = (theta_hat[:, free] - low) * (high - theta_hat[:, free]) / (high - low)
     std_free = torch.where(unbounded, torch.full_like(sd_u, torch.inf), sd_u * slope)
     ci_low_free = space.from_unconstrained(_embed(space, theta_free_hat - Z95 * sd_u, n))[:, free]
     ci_high_free = space.from_unconstrained(_embed(space, theta_free_hat + Z95 * sd_u, n))[:, free]
-    std = torch.zeros(n, d, dtype=theta_hat.dtype)
+    std = torch.zeros(n, d, dtype=theta_hat.dtype, device=device)
     std[:, free] = std_free
     ci_low, ci_high = theta_hat.clone(), theta_hat.clone()
     ci_low[:, free], ci_high[:, free] = ci_low_free, ci_high_free
     # judged by the interval's width, not the delta-method sd, which vanishes on a bound
-    width = (ci_high - ci_low) / (space.high(theta_hat.dtype) - space.low(theta_hat.dtype))
+    span = space.high(theta_hat.dtype, device) - space.low(theta_hat.dtype, device)
+    width = (ci_high - ci_low) / span
     identified = (width < 0.5) & torch.isfinite(std)
     covariance = cov_u[:, :k, :k] * slope.unsqueeze(-1) * slope.unsqueeze(-2)
     return Intervals(
@@ -100,6 +102,6 @@ def fisher_intervals(
 
 def _embed(space: ThetaSpace, u_free: torch.Tensor, n: int) -> torch.Tensor:
     """Unconstrained ``[n, d]`` with the free coordinates set (the rest are irrelevant zeros)."""
-    u = torch.zeros(n, space.dim, dtype=u_free.dtype)
-    u[:, space.free_mask] = u_free.clamp(-40, 40)
+    u = torch.zeros(n, space.dim, dtype=u_free.dtype, device=u_free.device)
+    u[:, space.free_mask.to(u_free.device)] = u_free.clamp(-40, 40)
     return u
