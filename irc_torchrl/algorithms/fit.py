@@ -30,6 +30,9 @@ CURVATURES = ("hessian", "fisher")
 
 #: the largest move of one Newton step in any unconstrained coordinate
 MAX_STEP = 1.5
+#: the unconstrained coordinate at which a free θ counts as on its bound (θ within
+#: ``1/(1+e^BOUND)`` ≈ 0.25% of its range from the bound)
+BOUND = 6.0
 #: iterations without a gain of ``tol`` after which a Newton row has converged
 IDLE = 4
 #: Fisher scoring hands a row to Newton's method once it promises or gains less than this (nats)
@@ -161,21 +164,23 @@ def fit_theta(
     for iterations in range(1, max_iter + 1):
         # only rows still moving cost work; a rejected step leaves a row's derivatives valid
         active = (~converged & ~stalled).nonzero().squeeze(-1)
-        h, g, d = hessian[active], grad[active], damping[active]
+        h, g = _pin_bounds(params[active], hessian[active], grad[active], k)
+        d = damping[active]
         # the undamped Newton decrement: the decrease a full step promises (∞ where the
         # curvature is not positive definite); tiny means θ̂ is reached
         decrement = _newton_decrement(h, g)
         converged[active] = near[active] & ((decrement < tol) | (idle[active] >= IDLE))
-        step, d = _damped_step(h, g, d)
+        step, d = _damped_step(_absolute(h), g, d)
+        # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
+        step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
         with torch.no_grad():
             gain = value[active] - nll(params[active] + step, rows[active])
         accept = (gain > 1e-12) & ~converged[active]
         # Fisher scoring has done its part once it promises or makes little progress
         switch = ~near[active] & ((decrement < SWITCH) | (accept & (gain < SWITCH)))
         # the gain ratio: how much of the decrease the quadratic model promised was made
-        promised = -(g * step).sum(-1) - 0.5 * (step.unsqueeze(-2) @ h @ step.unsqueeze(-1)).view(
-            -1
-        )
+        quadratic = (step.unsqueeze(-2) @ h @ step.unsqueeze(-1)).view(-1)
+        promised = -(g * step).sum(-1) - 0.5 * quadratic
         ratio = gain / promised.clamp_min(1e-300)
         damping[active] = torch.where(
             ~accept, d * 8, torch.where(ratio > 0.75, d / 3, torch.where(ratio < 0.25, d * 2, d))
@@ -210,6 +215,35 @@ def fit_theta(
         iterations=iterations,
         names=space.names,
     )
+
+
+def _pin_bounds(
+    params: torch.Tensor, h: torch.Tensor, g: torch.Tensor, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Curvature and gradient with the θ coordinates held on a bound taken out.
+
+    A coordinate at ``±BOUND`` whose descent direction points further out stays where it is
+    (an active bound constraint): its gradient is zeroed and its curvature decoupled, so the
+    step and the Newton decrement concern the other coordinates only.
+    """
+    pinned = torch.zeros_like(g, dtype=torch.bool)
+    pinned[:, :k] = (params[:, :k].abs() >= BOUND - 1e-9) & (params[:, :k] * g[:, :k] < 0)
+    keep = ~pinned
+    h = torch.where(
+        keep.unsqueeze(-1) & keep.unsqueeze(-2), h, torch.diag_embed(pinned.to(h.dtype))
+    )
+    return h, torch.where(pinned, torch.zeros_like(g), g)
+
+
+def _absolute(h: torch.Tensor) -> torch.Tensor:
+    """``H`` with its eigenvalues replaced by their absolute values (saddle-free Newton).
+
+    Where the likelihood is not concave a Newton step heads for the saddle or maximum of the
+    quadratic model; flipping the negative curvature turns it downhill along those directions
+    with a step scaled by how curved they are, instead of leaving it all to the damping.
+    """
+    eigval, eigvec = torch.linalg.eigh(h)
+    return (eigvec * eigval.abs().unsqueeze(-2)) @ eigvec.mT
 
 
 def _newton_decrement(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
