@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="firefly1d",
         help=(
             "firefly1d (default): the above, about a minute; firefly2d: the recovery experiment "
-            "of `irc recover` on 4 agents × 40 trials with the shipped 2D policy, a few minutes"
+            "of `irc recover` on 3 agents × 40 trials with the shipped 2D policy, about 5 minutes"
         ),
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")

@@ -213,7 +213,7 @@ def recover_firefly2d(
 
 
 #: ``irc demo --task firefly2d``: the recovery experiment made small enough for minutes
-DEMO_OVERRIDES = ("n_prior_agents=3", "n_mistaken_agents=1", "n_trials=40", "fit.max_iter=30")
+DEMO_OVERRIDES = ("n_prior_agents=2", "n_mistaken_agents=1", "n_trials=40")
 
 
 def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool = True) -> dict:
