@@ -232,3 +232,20 @@ def test_help_lists_every_subcommand_with_a_purpose(capsys):
         build_parser().parse_args(["fit", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "--method {marginal,map,both}" in text and "--free NAME,NAME" in text
+
+
+def test_nwb_without_pynwb_is_refused_before_simulating(tmp_path, capsys, monkeypatch):
+    import irc_torchrl.algorithms.recordings as recordings
+
+    def missing():
+        raise ImportError("NWB files need pynwb (no module); install it with: pip install x")
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("simulated before refusing the format")
+
+    monkeypatch.setattr(recordings, "nwb_module", missing)
+    monkeypatch.setattr(recordings, "simulate_agents", no_work)
+    code = main(["simulate", "--out", str(tmp_path / "sim"), "--format", "nwb", "--quiet"])
+    assert code == 2
+    assert "pynwb" in capsys.readouterr().err
+    assert not (tmp_path / "sim" / "summary.json").exists()

@@ -32,7 +32,7 @@ from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import atomic_path, write_json
-from irc_torchrl.data.io import read_trials, write_trials
+from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import FeaturePolicy
@@ -100,6 +100,8 @@ def simulate_recordings(
         raise ValueError(f"task: recordings are simulated for {TASK!r} only, got {task!r}")
     if file_format not in FORMATS:
         raise ValueError(f"format: expected one of {sorted(FORMATS)}, got {file_format!r}")
+    if file_format == "nwb":
+        nwb_module()  # pynwb missing: say so before simulating anything
     config.validate()
     target = resolve_device(device)
     out = Path(out)

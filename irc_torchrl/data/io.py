@@ -34,7 +34,7 @@ from irc_torchrl.data.validate import (
 )
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["read_trials", "write_trials", "trials_to_columns"]
+__all__ = ["nwb_module", "read_trials", "write_trials", "trials_to_columns"]
 
 #: the median time step may differ from the model's by this fraction before resampling
 RESAMPLE_TOLERANCE = 0.01
@@ -238,7 +238,8 @@ def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: s
     return trials_to_columns(trials.reshape(-1, trials.shape[-1]), model, time_column, trial_column)
 
 
-def _nwb_module():
+def nwb_module():
+    """The NWB reader/writer, or an ImportError that says how to install pynwb."""
     try:
         nwb = importlib.import_module("irc_torchrl.data.nwb")
     except ImportError as err:
@@ -249,11 +250,11 @@ def _nwb_module():
 
 
 def _read_nwb(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
-    return _nwb_module().read_nwb(path, model, time_column, trial_column)
+    return nwb_module().read_nwb(path, model, time_column, trial_column)
 
 
 def _write_nwb(columns: Columns, tmp: Path, model: TaskModel) -> None:
-    _nwb_module().write_nwb(columns, tmp, model)
+    nwb_module().write_nwb(columns, tmp, model)
 
 
 # --- from table to held trials ---------------------------------------------------------------
