@@ -83,8 +83,11 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
     return rows
 
 
-def td3_run(cpu_budget: float, seed: int, model, thetas: torch.Tensor) -> dict | None:
-    """TD3 (stable-baselines3) on the gymnasium adapter for ``cpu_budget`` CPU seconds."""
+def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> list[dict] | None:
+    """TD3 (stable-baselines3) on the gymnasium adapter, evaluated at each CPU-second budget.
+
+    Evaluation CPU time is excluded from the budget, as it is for the ensemble.
+    """
     try:
         from stable_baselines3 import TD3
         from stable_baselines3.common.callbacks import BaseCallback
@@ -95,19 +98,37 @@ def td3_run(cpu_budget: float, seed: int, model, thetas: torch.Tensor) -> dict |
     from irc_torchrl.envs.belief import BeliefFeatures
     from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
 
+    rows: list[dict] = []
+    pending = sorted(budgets)
+    spent = {"eval": 0.0}
+
+    def evaluate(cpu_s: float) -> None:
+        begin = time.process_time()
+        act = TensorDictModule(
+            lambda f: agent.actor(f).clamp(-1, 1), in_keys=["features"], out_keys=["action"]
+        )
+        policy = TensorDictSequential(BeliefFeatures(model), act)
+        metrics = evaluate_policy(model, policy, thetas, 8)
+        rows.append({"cpu_s": cpu_s, "steps": agent.num_timesteps, **metrics})
+        spent["eval"] += time.process_time() - begin
+
     class Budget(BaseCallback):
         def _on_step(self) -> bool:
-            return time.process_time() - start < cpu_budget
+            used = time.process_time() - start - spent["eval"]
+            while pending and used >= pending[0]:
+                evaluate(pending.pop(0))
+            return bool(pending)
 
     start = time.process_time()
     agent = TD3("MlpPolicy", Firefly2DGymEnv(model=model), seed=seed, verbose=0)
     agent.learn(total_timesteps=10**9, callback=Budget())
-    used = time.process_time() - start
-    act = TensorDictModule(
-        lambda f: agent.actor(f).clamp(-1, 1), in_keys=["features"], out_keys=["action"]
-    )
-    metrics = evaluate_policy(model, TensorDictSequential(BeliefFeatures(model), act), thetas, 8)
-    return {"cpu_s": used, "steps": agent.num_timesteps, **metrics}
+    return rows
+
+
+def ensemble_at(history: list[dict], cpu_s: float) -> float:
+    """The ensemble's success at its last evaluation within ``cpu_s`` CPU seconds (0 before)."""
+    done = [row["success_rate"] for row in history if row["train_cpu_s"] <= cpu_s + 1e-9]
+    return done[-1] if done else 0.0
 
 
 def main() -> None:
@@ -140,14 +161,18 @@ def main() -> None:
             f"{row['pursuit']:>8.2f} {row['ratio']:>6.2f}"
         )
     model = runs[0]["model"]
-    budget = runs[0]["history"][-1]["train_cpu_s"]
-    td3 = td3_run(budget, 0, model, theta_grid(model.theta_space, 64, 12345))
+    history = runs[0]["history"]
+    budget = history[-1]["train_cpu_s"]
+    budgets = [budget * f for f in (0.125, 0.25, 0.5, 1.0)]
+    td3 = td3_run(budgets, 0, model, theta_grid(model.theta_space, 64, 12345))
     if td3:
-        print(
-            f"TD3 after {td3['cpu_s']:.0f} CPU s ({td3['steps']} steps): success "
-            f"{td3['success_rate']:.1%}, return {td3['mean_return']:.2f}; ensemble at the "
-            f"same budget: success {runs[0]['history'][-1]['success_rate']:.1%}"
-        )
+        print(f"{'CPU s':>7} {'TD3 steps':>9} {'TD3 success':>11} {'ensemble success':>16}")
+        for row in td3:
+            row["ensemble_success"] = ensemble_at(history, row["cpu_s"])
+            print(
+                f"{row['cpu_s']:>7.0f} {row['steps']:>9} {row['success_rate']:>11.1%} "
+                f"{row['ensemble_success']:>16.1%}"
+            )
     else:
         print("TD3: stable_baselines3 is not installed; skipped")
     write_json(
@@ -156,7 +181,9 @@ def main() -> None:
             "median": med,
             "runs": [{k: v for k, v in r.items() if k not in ("actor", "model")} for r in runs],
             "specialists": rows,
-            "td3": {k: v for k, v in td3.items() if not k.startswith("per_theta")} if td3 else None,
+            "td3": [{k: v for k, v in row.items() if not k.startswith("per_theta")} for row in td3]
+            if td3
+            else None,
         },
     )
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -28,6 +29,7 @@ __all__ = [
     "plot_dp_comparison",
     "plot_estimates",
     "plot_q_function",
+    "plot_q_function_2d",
     "plot_recovery",
     "plot_training",
     "report_run",
@@ -70,6 +72,47 @@ def plot_q_function(
     ax.set_ylabel("Q(b, a; θ) (reward units)")
     ax.set_title("θ: " + ", ".join(f"{k}={v:.3g}" for k, v in theta.items()), fontsize=8)
     ax.legend(fontsize=7, ncol=2)
+    return _save(fig, path)
+
+
+def plot_q_function_2d(
+    slices: Mapping[str, torch.Tensor | float], path: str | Path, distance_unit: str = "m"
+) -> Path:
+    """Fig. 1B on the 2D task, from :func:`~irc_torchrl.algorithms.ensemble.critic_slices`.
+
+    Left: the value ``Q(b, π(b); θ)`` against where the agent believes the target is.
+    Middle and right: ``Q(b, a; θ)`` over the action square for two beliefs, ``π(b)`` marked,
+    the stop region (forward control below the threshold) hatched.
+    """
+    fig, axes = plt.subplots(1, 3, figsize=(13.5, 4.2))
+    ax = axes[0]
+    # drawn as seen from above, behind the agent: its left on the left (x = −aside)
+    right, ahead = -np.asarray(slices["aside"]), np.asarray(slices["ahead"])
+    image = ax.pcolormesh(right, ahead, np.asarray(slices["value"]), shading="auto")
+    fig.colorbar(image, ax=ax, label="Q(b, π(b); θ) (reward units)")
+    ax.add_patch(Circle((0, 0), float(slices["goal_radius"]), fill=False, color="w", ls="--"))
+    ax.plot(0, 0, "w^", ms=8)
+    for name, marker in (("far", "o"), ("near", "s")):
+        ahead_t, aside_t = slices[f"target_{name}"]
+        ax.plot(-aside_t, ahead_t, marker, mfc="none", mec="r", ms=9)
+    ax.set_xlabel(f"believed target, right of the agent ({distance_unit})")
+    ax.set_ylabel(f"believed target, ahead of the agent ({distance_unit})")
+    ax.set_title("value of the believed target position\n(agent ▲ at rest, goal dashed)")
+    ax.set_aspect("equal")
+    action = np.asarray(slices["action"])
+    for ax, name, where in (
+        (axes[1], "far", "target ○ ahead-left"),
+        (axes[2], "near", "target □ at the agent"),
+    ):
+        image = ax.pcolormesh(action, action, np.asarray(slices[f"q_{name}"]).T, shading="auto")
+        fig.colorbar(image, ax=ax, label="Q(b, a; θ) (reward units)")
+        ax.axvspan(-1, float(slices["stop_threshold"]), fill=False, hatch="//", ec="w", lw=0)
+        pi = np.asarray(slices[f"pi_{name}"])
+        ax.plot(pi[0], pi[1], "r*", ms=14, label="π(b)")
+        ax.set_xlabel("forward control a_v (stop if < threshold, hatched)")
+        ax.set_ylabel("angular control a_w")
+        ax.set_title(f"Q over actions, {where}")
+        ax.legend(loc="lower right", fontsize=8)
     return _save(fig, path)
 
 
@@ -345,12 +388,32 @@ def report_run(folder: str | Path) -> list[Path]:
     beliefs = folder / "beliefs.npz"
     if beliefs.is_file() and "state_names" in summary:
         written += _belief_figures(summary, beliefs, folder)
+    if written and summary.get("task") == "firefly2d":
+        written += _q_figure(summary, folder)
     if not written:
         raise ValueError(
             f"report: {path} holds neither fitted agents nor a training history; expected "
             "the summary.json of irc fit, recover, demo or train"
         )
     return written
+
+
+def _q_figure(summary: Mapping, folder: Path) -> list[Path]:
+    """Fig. 1B of a 2D run at the default θ, from the run's own checkpoint or the one it used.
+
+    A checkpoint that is gone (a summary copied from elsewhere) skips the figure with a warning.
+    """
+    from irc_torchrl.algorithms.ensemble import critic_slices, load_ensemble_critic
+
+    own = folder / "checkpoint.pt"
+    source = own if own.is_file() else summary.get("checkpoint") or "firefly2d"
+    try:
+        critic, actor, model = load_ensemble_critic(source)
+    except (FileNotFoundError, ValueError) as error:
+        warnings.warn(f"report: no Q-function figure: {error}", stacklevel=3)
+        return []
+    slices = critic_slices(model, critic, actor, model.theta_space.default())
+    return [plot_q_function_2d(slices, folder / "q_function.png")]
 
 
 def _belief_figures(summary: Mapping, beliefs: Path, folder: Path) -> list[Path]:

@@ -126,7 +126,12 @@ def test_report_redraws_a_fit_folder(fitted, tmp_path, capsys):
         shutil.copy(source / name, folder / name)
     assert main(["report", str(folder)]) == 0
     assert "recovery.png" in capsys.readouterr().out
-    for name in ("recovery.png", "agent0_beliefs_overhead.png", "agent0_beliefs_time.png"):
+    for name in (
+        "recovery.png",
+        "agent0_beliefs_overhead.png",
+        "agent0_beliefs_time.png",
+        "q_function.png",  # Fig. 1B from the checkpoint the fit used
+    ):
         assert (folder / name).read_bytes()[:8] == PNG
 
 
@@ -149,14 +154,25 @@ def test_report_draws_one_figure_per_method(fitted, tmp_path):
     (tmp_path / "summary.json").write_text(json.dumps(recover))
     assert main(["report", str(tmp_path)]) == 0
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
-    assert pngs == ["recovery_map.png", "recovery_marginal.png"]
+    assert pngs == ["q_function.png", "recovery_map.png", "recovery_marginal.png"]
+
+
+def test_report_skips_the_q_figure_when_its_checkpoint_is_gone(fitted, tmp_path):
+    _, summary = fitted
+    moved = {**summary, "checkpoint": str(tmp_path / "elsewhere.pt")}
+    (tmp_path / "summary.json").write_text(json.dumps(moved))
+    with pytest.warns(UserWarning, match="report: no Q-function figure: .*elsewhere.pt"):
+        assert main(["report", str(tmp_path)]) == 0
+    assert (tmp_path / "recovery.png").is_file()
+    assert not (tmp_path / "q_function.png").exists()
 
 
 def test_report_draws_training_curves(tmp_path):
     settings = [o for o in TINY_TRAIN if not o.startswith("logger=")]  # the CSV logger: logs/
     assert main(["train", "--out", str(tmp_path), "--quiet", *settings]) == 0
     assert main(["report", str(tmp_path)]) == 0
-    assert (tmp_path / "training.png").read_bytes()[:8] == PNG
+    for name in ("training.png", "q_function.png"):  # Q from the run's own checkpoint
+        assert (tmp_path / name).read_bytes()[:8] == PNG
 
 
 def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):

@@ -13,7 +13,9 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from irc_torchrl.algorithms.ensemble import (
     Firefly2DConfig,
+    critic_slices,
     evaluate_policy,
+    load_ensemble_critic,
     load_ensemble_policy,
     make_model,
     make_train_env,
@@ -183,3 +185,21 @@ def test_shipped_checkpoint_loads_by_name_and_catches_fireflies():
     # the shipped policy was kept at 84.6% success over the prior (pursuit floor 86.5%)
     assert metrics["success_rate"] > 0.8
     assert metrics["mean_return"] > floor["mean_return"] - 0.5
+
+
+def test_shipped_critic_values_stopping_on_the_target_and_going_when_it_is_far():
+    critic, actor, model = load_ensemble_critic("firefly2d")
+    s = critic_slices(model, critic, actor, model.theta_space.default(), n=21)
+    stop = s["action"] < model.stop_threshold  # the a_v rows that stop
+    fast = s["action"] > 0.5
+    # target at the agent's feet: stopping is worth more than going (a smooth critic: far more
+    # than going fast), and π stops
+    assert s["q_near"][stop].max() > s["q_near"][~stop].max()
+    assert s["q_near"][stop].max() > s["q_near"][fast].max() + 1.0
+    assert s["pi_near"][0] < model.stop_threshold
+    # target ahead-left at mid distance: going is worth more than stopping, π goes and turns left
+    assert s["q_far"][~stop].max() > s["q_far"][stop].max() + 1.0
+    assert s["pi_far"][0] > 0.5 and s["pi_far"][1] > 0.2
+    # the believed target at the agent is worth more than any far one (on the grid's edge)
+    edge = torch.cat([s["value"][-1], s["value"][:, 0], s["value"][:, -1]])
+    assert s["value"][s["value"].shape[0] // 5, s["value"].shape[1] // 2] > edge.max() + 2.0

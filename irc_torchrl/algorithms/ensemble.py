@@ -27,7 +27,7 @@ from typing import Any
 
 import torch
 import yaml
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -53,6 +53,8 @@ __all__ = [
     "TrainResult",
     "config_from_dict",
     "evaluate_policy",
+    "critic_slices",
+    "load_ensemble_critic",
     "load_ensemble_policy",
     "make_model",
     "theta_grid",
@@ -614,13 +616,8 @@ def _make_collector(
     return collector
 
 
-def load_ensemble_policy(
-    source: str | Path = TASK,
-) -> tuple[TensorDictSequential, Firefly2DModel, dict[str, Any]]:
-    """The kept (best-by-evaluation) policy of a checkpoint: ``(actor, model, checkpoint)``.
-
-    ``source`` is a path or the name of a packaged checkpoint (default: the shipped one).
-    """
+def _load(source: str | Path) -> tuple[Firefly2DConfig, Firefly2DModel, dict[str, Any]]:
+    """A checkpoint's config and task model, the θ space checked against the config's own."""
     ckpt = load_checkpoint(source, task=TASK)
     config = config_from_dict(ckpt["config"])
     model = make_model(config)
@@ -628,6 +625,89 @@ def load_ensemble_policy(
         raise ValueError(
             f"checkpoint {ckpt['path']}: theta_space does not match its own config's θ space"
         )
+    return config, model, ckpt
+
+
+def load_ensemble_policy(
+    source: str | Path = TASK,
+) -> tuple[TensorDictSequential, Firefly2DModel, dict[str, Any]]:
+    """The kept (best-by-evaluation) policy of a checkpoint: ``(actor, model, checkpoint)``.
+
+    ``source`` is a path or the name of a packaged checkpoint (default: the shipped one).
+    """
+    config, model, ckpt = _load(source)
     actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
     actor.load_state_dict(ckpt["best_actor"])
     return actor.requires_grad_(False), model, ckpt
+
+
+def load_ensemble_critic(
+    source: str | Path = TASK,
+) -> tuple[TensorDictSequential, TensorDictSequential, Firefly2DModel]:
+    """A checkpoint's critic and the actor it values, both at its last update.
+
+    Returns ``(critic, actor, model)``; the critic is ``Q(b, a, θ)`` of that actor (the kept
+    policy may be an earlier one).
+    """
+    config, model, ckpt = _load(source)
+    hidden, activation = config.ddpg.hidden, config.ddpg.activation
+    actor, critic = make_actor(model, hidden, activation), make_critic(model, hidden, activation)
+    actor.load_state_dict(ckpt["actor"])
+    prefix = "value_network_params."
+    critic.load_state_dict(
+        {k[len(prefix) :]: v for k, v in ckpt["loss"].items() if k.startswith(prefix)}
+    )
+    return critic.requires_grad_(False), actor.requires_grad_(False), model
+
+
+@torch.no_grad()
+def critic_slices(
+    model: Firefly2DModel,
+    critic: TensorDictSequential,
+    actor: TensorDictSequential,
+    theta: torch.Tensor,
+    n: int = 41,
+) -> dict[str, Any]:
+    """Slices of ``Q(b, a; θ)`` for the paper's Fig. 1B on the 2D task.
+
+    The agent stands at the origin heading along +x, at rest, certain of where it is, at the
+    first step where it may stop. ``value``: ``Q(b, π(b); θ)`` for the target at each point of
+    an ``n × n`` grid (ahead, aside). ``q_far`` / ``q_near``: ``Q`` over the action square for a
+    target ahead-left at mid distance / at the agent's feet, with ``π(b)`` as ``pi_far`` /
+    ``pi_near``. Distances are in the task's units.
+    """
+    far = float(model.target_distance[1])
+    ahead = torch.linspace(-0.25 * far, far, n)
+    aside = torch.linspace(-0.6 * far, 0.6 * far, n)
+    targets = torch.stack(torch.meshgrid(ahead, aside, indexing="ij"), -1).reshape(-1, 2)
+    action = torch.linspace(-1.0, 1.0, n)
+    actions = torch.stack(torch.meshgrid(action, action, indexing="ij"), -1).reshape(-1, 2)
+
+    def beliefs(target: torch.Tensor) -> TensorDictBase:
+        batch = target.shape[0]
+        mean = torch.zeros(batch, model.state_dim)
+        mean, cov = model.initial_belief(mean, target, theta.expand(batch, -1))
+        return TensorDict(
+            {
+                "belief": {"mean": mean, "cov": cov},
+                "target": target,
+                "step": torch.full((batch, 1), model.min_steps, dtype=torch.int64),
+                "theta": theta.float().expand(batch, -1),
+            },
+            batch_size=[batch],
+        )
+
+    def q(td: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+        return critic(td.set("action", action))["state_action_value"].squeeze(-1)
+
+    grid = beliefs(targets)
+    value = q(grid, actor(grid.clone())["action"]).reshape(n, n)
+    out: dict[str, Any] = {"ahead": ahead, "aside": aside, "action": action, "value": value}
+    for name, target in (("far", [0.6 * far, 0.25 * far]), ("near", [0.0, 0.0])):
+        one = beliefs(torch.tensor([target]))
+        out[f"pi_{name}"] = actor(one.clone())["action"][0]
+        out[f"q_{name}"] = q(one.expand(actions.shape[0]).clone(), actions).reshape(n, n)
+        out[f"target_{name}"] = target
+    out["goal_radius"] = float(theta[model.theta_space.index("goal_radius")])
+    out["stop_threshold"] = model.stop_threshold
+    return out

@@ -115,7 +115,13 @@ def simulate_recordings(
         world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
         policy = motor_noise_policy(actor, model.action_spec.to(target), config.motor_noise)
         trials = simulate_agents(
-            model, policy, theta.to(target), config.n_trials, world.to(target), seed=seed + 1
+            model,
+            policy,
+            theta.to(target),
+            config.n_trials,
+            world.to(target),
+            seed=seed + 1,
+            progress=progress,
         ).cpu()
         simulate_s = time.perf_counter() - start
         agents = []

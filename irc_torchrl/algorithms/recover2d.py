@@ -103,7 +103,7 @@ class Recovery2DConfig:
 
 
 def simulate_recovery_agents(
-    model: Firefly2DModel, actor, config: Recovery2DConfig
+    model: Firefly2DModel, actor, config: Recovery2DConfig, progress: bool = False
 ) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
     """Draw θ* and simulate both groups: ``(trials, theta_true, mistaken)``.
 
@@ -116,7 +116,13 @@ def simulate_recovery_agents(
     world = torch.where(mistaken.unsqueeze(-1), space.default().expand(n, -1), theta_true)
     policy = motor_noise_policy(actor, model.action_spec, config.motor_noise)
     trials = simulate_agents(
-        model, policy, theta_true, config.n_trials, task_theta=world, seed=config.seed + 1
+        model,
+        policy,
+        theta_true,
+        config.n_trials,
+        task_theta=world,
+        seed=config.seed + 1,
+        progress=progress,
     )
     return trials, theta_true, mistaken
 
@@ -151,7 +157,9 @@ def recover_firefly2d(
     actor, model, _ = load_ensemble_policy(config.checkpoint)
     space = model.theta_space
     start = time.perf_counter()
-    trials, theta_true, mistaken = simulate_recovery_agents(model, actor, config)
+    trials, theta_true, mistaken = simulate_recovery_agents(
+        model, actor, config, progress is not None
+    )
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
     n_agents = theta_true.shape[0]
@@ -163,6 +171,7 @@ def recover_firefly2d(
     summary: dict = {
         "task": config.task,
         "seed": config.seed,
+        "checkpoint": config.checkpoint,
         "n_agents": n_agents,
         "n_trials": config.n_trials,
         "mean_trial_length": float(held["mask"].sum(-1).double().mean()),

@@ -13,6 +13,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import TensorSpec
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
+from tqdm.auto import tqdm
 
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
@@ -69,6 +70,7 @@ def simulate_agents(
     n_trials: int,
     task_theta: torch.Tensor | None = None,
     seed: int = 0,
+    progress: bool = False,
 ) -> TensorDict:
     """Run ``n_trials`` trials for each agent θ (``[n_agents, d]``) and return held trials.
 
@@ -76,6 +78,7 @@ def simulate_agents(
         policy: a TorchRL policy reading the belief (e.g. :func:`boltzmann_policy`);
             ``None`` acts at random.
         task_theta: the world's θ, ``[d]`` or ``[n_agents, d]``; ``None``: each agent's own.
+        progress: a progress bar over the time steps (all trials advance together).
     """
     space = model.theta_space
     theta = space.validate(theta, "theta")
@@ -95,9 +98,14 @@ def simulate_agents(
         ),
         EKFBelief(model),
     )
+    bar = tqdm(total=model.max_steps, desc="simulate", unit="step", disable=not progress)
     with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         torch.manual_seed(seed)
-        rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
+        rollout = env.rollout(
+            model.max_steps, policy, lambda *_: bar.update(), break_when_any_done=False
+        )
+    bar.update(bar.total - bar.n)  # rollout calls back between steps, not after the last
+    bar.close()
     keys = ["state", "action", "target", "task_theta", "theta", "belief"]
     trials = rollout.select(*keys)
     trials["mask"] = first_trial_mask(rollout["next", "done"].squeeze(-1))
