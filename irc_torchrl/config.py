@@ -20,6 +20,7 @@ from irc_torchrl.algorithms.ensemble import (
     EvaluationConfig,
     Firefly2DConfig,
 )
+from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 
 if TYPE_CHECKING:  # recover2d imports this module
@@ -63,6 +64,14 @@ class FitConfig:
     max_iter: int = 40
     #: "hessian" (exact Newton) or "fisher" (Fisher scoring far from θ̂, Newton near it)
     curvature: str = "hessian"
+    #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
+    covariance: str = "hessian"
+
+    def validate(self) -> FitConfig:
+        """Return ``self`` if the method names are known, else a one-line error naming them."""
+        _one_of("fit.curvature", self.curvature, CURVATURES)
+        _one_of("fit.covariance", self.covariance, COVARIANCES)
+        return self
 
 
 @dataclass
@@ -116,6 +125,8 @@ class RecordingFitConfig:
     max_iter: int = 40
     #: the motor-noise std the fit starts from (a nuisance parameter, fitted beside θ)
     motor_noise: float = 0.1
+    #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
+    covariance: str = "hessian"
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)
@@ -139,7 +150,13 @@ class RecordingFitConfig:
                 f"config: n_starts={self.n_starts} exceeds n_screen={self.n_screen}; "
                 "the starts are the best of the screened draws"
             )
+        _one_of("covariance", self.covariance, COVARIANCES)
         return self
+
+
+def _one_of(name: str, value: str, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise ValueError(f"config: {name} must be one of {tuple(choices)}, got {value!r}")
 
 
 def _positive(**values: float) -> None:
@@ -206,10 +223,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
         raise ValueError(
             f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}"
         )
-    if config.fit.curvature not in ("hessian", "fisher"):
-        raise ValueError(
-            f"config: fit.curvature must be 'hessian' or 'fisher', got {config.fit.curvature!r}"
-        )
+    config.fit.validate()
     return config
 
 

@@ -192,6 +192,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "--free", "g_v,g_x"], "unknown θ parameter 'g_x'"),
         (["fit", "FILE", "--free", "sigma_pos"], "'sigma_pos' is fixed"),
         (["fit", "FILE", "--free", "g_v", "theta.g_v=1.0"], "both fitted"),
+        (["fit", "FILE", "covariance=robust"], "covariance must be one of"),
+        (["recover", "fit.covariance=robust"], "fit.covariance must be one of"),
     ],
 )
 def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_path, capsys):
@@ -265,3 +267,16 @@ def test_nwb_without_pynwb_is_refused_before_simulating(tmp_path, capsys, monkey
     assert code == 2
     assert "pynwb" in capsys.readouterr().err
     assert not (tmp_path / "sim" / "summary.json").exists()
+
+
+def test_simulation_reports_each_time_step_without_changing_the_trials():
+    from irc_torchrl.algorithms.simulate import simulate_agents
+    from irc_torchrl.envs.firefly2d import Firefly2DModel
+
+    model = Firefly2DModel()
+    theta = model.theta_space.default().unsqueeze(0)
+    calls = []
+    seen = simulate_agents(model, None, theta, 2, seed=3, progress=lambda *c: calls.append(c))
+    quiet = simulate_agents(model, None, theta, 2, seed=3)
+    assert calls == [(i, model.max_steps) for i in range(1, model.max_steps + 1)]
+    assert torch.equal(seen["action"], quiet["action"])

@@ -45,6 +45,7 @@ def test_shipped_yaml_equals_the_embedded_default():
         ("theta_fixed={g_x: 1.0}", "theta_fixed: unknown θ parameter 'g_x'"),
         ("theta_fixed={g_v: 9.0}", "theta_fixed: fixed g_v=9.0 outside its range"),
         ("ddpg.n_env=3", "unknown key 'ddpg.n_env'; valid keys: .*ddpg.n_envs"),
+        ("ddpg.bc_weight=-1", "ddpg.bc_weight must be ≥ 0"),
     ],
 )
 def test_bad_config_is_a_clear_error(override, message):
@@ -92,9 +93,34 @@ def test_ddpg_loss_and_soft_update_move_the_target_networks():
     assert isinstance(losses, TensorDict)
 
 
+def test_behaviour_cloning_term_pulls_the_actor_towards_the_controller(tmp_path):
+    """With the TD3+BC term the DDPG updates also imitate the pursuit controller: the final
+    actor stays closer to it than the same run without the term."""
+    fast = ["logger=none", "ddpg.clone_updates=0", "ddpg.lr_actor=0.01"]  # only DDPG moves it
+    plain = train_ensemble(tiny(*fast), out=tmp_path / "a", progress=False, seed=5)
+    bc = tiny(*fast, "ddpg.bc_weight=50", "ddpg.bc_updates=1000")
+    held = train_ensemble(bc, out=tmp_path / "b", progress=False, seed=5)
+    env = make_train_env(plain.model, 64, seed=9)
+    beliefs = env.rollout(6, BeliefPursuit(plain.model), break_when_any_done=False)
+    teacher = BeliefPursuit(plain.model)(beliefs.clone())["action"].clamp(-0.97, 0.97)
+
+    def distance(result):
+        actor = make_actor(result.model, [16, 16])
+        actor.load_state_dict(torch.load(result.checkpoint, weights_only=True)["actor"])
+        return (actor(beliefs.clone())["action"] - teacher).pow(2).mean()
+
+    near, far = distance(held), distance(plain)
+    assert near < 0.7 * far, (near, far)
+
+
 def test_tiny_training_is_deterministic_for_a_seed():
     runs = [train_ensemble(tiny(), progress=False, seed=5) for _ in range(2)]
     assert runs[0].updates > 0
+    # the behaviour-cloned policy is evaluated before DDPG moves it, and the kept policy is
+    # never worse than it
+    clone = runs[0].history[0]
+    assert clone["updates"] == 0
+    assert runs[0].best["mean_return"] >= clone["mean_return"]
     for name, value in runs[0].critic.state_dict().items():
         assert torch.equal(value, runs[1].critic.state_dict()[name]), name
     assert runs[0].history == [

@@ -302,6 +302,35 @@ def test_fit_reaches_at_least_the_likelihood_of_the_truth(firefly1d_model, train
     assert (gap > -1e-6).all(), f"log L(θ̂) − log L(θ*) per agent: {gap.tolist()}"
 
 
+def test_sandwich_covariance_is_the_hessian_one_scaled_by_the_scores_spread(space):
+    theta_hat = space.default(torch.float64).repeat(2, 1)
+    u = space.to_unconstrained(theta_hat)[:, space.free_mask]
+    hessian = torch.diag(torch.tensor([1e4, 400.0, 50.0], dtype=torch.float64)).repeat(2, 1, 1)
+    plain = fisher_intervals(space, theta_hat, u, hessian)
+    # scores that vary as the curvature says: the same intervals
+    same = fisher_intervals(space, theta_hat, u, hessian, meat=hessian)
+    torch.testing.assert_close(same.std, plain.std)
+    # scores spread four times as much: twice the standard deviation
+    wide = fisher_intervals(space, theta_hat, u, hessian, meat=4 * hessian)
+    torch.testing.assert_close(wide.std, 2 * plain.std)
+
+
+def test_sandwich_agrees_with_the_hessian_when_the_likelihood_is_exact(
+    firefly1d_model, trained_q, space
+):
+    """On the 1D task the likelihood is exact, so the trials' scores vary as the observed
+    information says: sandwich and Hessian standard deviations agree within 35%."""
+    theta_true, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 2)
+    loss = make_loss(firefly1d_model, trained_q, 6)
+    plain = fit_theta(loss, trials, seed=0, starts=theta_true)
+    sandwich = fit_theta(loss, trials, seed=0, starts=theta_true, covariance="sandwich")
+    torch.testing.assert_close(sandwich.theta_hat, plain.theta_hat)
+    ratio = sandwich.intervals.std[:, :2] / plain.intervals.std[:, :2]
+    assert ((ratio > 0.65) & (ratio < 1.35)).all(), ratio
+    with pytest.raises(ValueError, match="covariance: expected one of"):
+        fit_theta(loss, trials, covariance="robust")
+
+
 def test_fit_rejects_bad_trials_before_any_work(firefly1d_model, trained_q, small_trials,
                                                 monkeypatch):
     loss = make_loss(firefly1d_model, trained_q, 3)

@@ -77,7 +77,8 @@ def _monte_carlo(action_model, theta, nuisance, state, action, target, samples, 
         features = MODEL.belief_features(
             mean, cov, target_r, torch.full((len(mean), 1), t), theta_r
         )
-        total += action_model.log_prob(features, action_r[:, t], rep(nuisance))
+        scored = MODEL.scored_actions(action_r[:, t], torch.full((len(mean), 1), t))
+        total += action_model.log_prob(features, action_r[:, t], rep(nuisance), scored)
         if t + 1 < T:
             nxt = state_r[:, t + 1]
             o_std = MODEL.observation_cov(nxt, theta_r).diagonal(dim1=-2, dim2=-1).sqrt()
@@ -215,3 +216,38 @@ def test_unknown_method_and_a_discrete_action_model_are_refused():
         InverseRationalLoss(MODEL, action_model, method="laplace")
     with pytest.raises(ValueError, match="'marginal' needs a continuous action model"):
         InverseRationalLoss(MODEL, BoltzmannActionModel(torch.nn.Linear(23, 3)), method="marginal")
+
+
+def test_a_stop_is_scored_by_its_forward_control_only():
+    step = torch.tensor([[5], [1], [5]])
+    action = torch.tensor([[0.05, 0.9], [0.05, 0.9], [0.5, 0.9]])
+    # a stop (a_v under the threshold once stopping is allowed) leaves a_w unscored
+    expected = torch.tensor([[True, False], [True, True], [True, True]])
+    assert torch.equal(MODEL.scored_actions(action, step), expected)
+
+
+@pytest.mark.parametrize("method", ["map", "marginal"])
+def test_the_angular_control_of_a_stop_does_not_change_the_likelihood(method):
+    """a_w on a stop step moves nothing and is not scored; on any other step it is."""
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.default().double().unsqueeze(0)
+    action_model, trials = _trials(1, 3, theta, 0.15, seed=4)
+    loss = InverseRationalLoss(MODEL, action_model, method=method)
+
+    def log_likelihood(action):
+        data = trials.clone()
+        data["action"] = action
+        return loss.log_likelihood(theta, loss.nuisance, data, per_trial=True)[0, 0]
+
+    action = trials["action"].clone()
+    action[0, 0, T - 1] = torch.tensor([-1.0, 0.8], dtype=action.dtype)  # the last step stops
+    base = log_likelihood(action)
+    turned = action.clone()
+    turned[0, 0, T - 1, 1] = -0.8
+    torch.testing.assert_close(log_likelihood(turned), base, rtol=0, atol=1e-12)
+    going = action.clone()
+    going[0, 0, T - 2] = torch.tensor([0.5, 0.8], dtype=action.dtype)  # the step before goes on
+    other = going.clone()
+    other[0, 0, T - 2, 1] = -0.8
+    assert (log_likelihood(other) - log_likelihood(going)).abs() > 1e-3

@@ -89,6 +89,11 @@ class DDPGConfig:
     #: DDPG then refines a policy that already reaches the goal instead of discovering it
     clone_updates: int = 2000
     critic_updates: int = 1000
+    #: with the pursuit warm-up: weight of a behaviour-cloning term in the actor's loss
+    #: (as TD3+BC), annealed linearly to 0 over bc_updates DDPG updates; it holds the actor
+    #: near the controller while the critic is still wrong about other actions (0: off)
+    bc_weight: float = 0.0
+    bc_updates: int = 0
     buffer_size: int = 200_000
     batch_size: int = 512
     hidden: list[int] = field(default_factory=lambda: [64, 64, 64])
@@ -170,6 +175,9 @@ class Firefly2DConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise ValueError(f"config: {name} must be positive, got {value}")
+        for name, value in {"ddpg.bc_weight": d.bc_weight, "ddpg.bc_updates": d.bc_updates}.items():
+            if not value >= 0:
+                raise ValueError(f"config: {name} must be ≥ 0, got {value}")
         for name, value in {"ddpg.gamma": d.gamma, "ddpg.tau": d.tau}.items():
             if not 0 < value <= 1:
                 raise ValueError(f"config: {name} must lie in (0, 1], got {value}")
@@ -465,9 +473,10 @@ def _train(
             )
 
     warmup = min(d.warmup_frames, d.buffer_size)
-    if resume is None and d.warmup_policy == "pursuit":
+    teacher = BeliefPursuit(model) if d.warmup_policy == "pursuit" else None
+    if resume is None and teacher is not None:
         seeding = TensorDictSequential(
-            BeliefPursuit(model),
+            teacher,
             AdditiveGaussianModule(
                 model.action_spec, sigma_init=d.warmup_sigma, sigma_end=d.warmup_sigma
             ),
@@ -478,7 +487,8 @@ def _train(
             frames += batch.numel()
             _extend(buffer, warmup_steps, batch)
         warmup_collector.shutdown()
-        _pretrain(loss, seeding[0], buffer, opt_actor, opt_critic, target_update, d)
+        _pretrain(loss, teacher, buffer, opt_actor, opt_critic, target_update, d)
+        evaluate()  # the clone is a candidate too: DDPG may degrade it before it improves on it
     random_start = resume is None and d.warmup_policy == "random"
     collector = _make_collector(config, model, explore, env_seed, remaining, random_start)
     multi_step = MultiStepTransform(d.n_steps, d.gamma)
@@ -492,8 +502,13 @@ def _train(
         if len(buffer) < warmup:
             continue
         for _ in range(d.updates_per_batch):
-            losses = loss(buffer.sample())
-            (losses["loss_actor"] + losses["loss_value"]).backward()
+            sample = buffer.sample()
+            losses = loss(sample)
+            total = losses["loss_actor"] + losses["loss_value"]
+            weight = d.bc_weight * max(0.0, 1.0 - updates / max(d.bc_updates, 1))
+            if teacher is not None and weight > 0:
+                total = total + weight * _clone_loss(loss.actor_network, teacher, sample)
+            total.backward()
             if d.max_grad_norm > 0:
                 for group in (opt_actor, opt_critic):
                     torch.nn.utils.clip_grad_norm_(group.param_groups[0]["params"], d.max_grad_norm)
@@ -547,13 +562,8 @@ def _pretrain(
     d: DDPGConfig,
 ) -> None:
     """Clone ``teacher`` into the actor, then fit the critic to that actor, on the buffer."""
-    actor = loss.actor_network
     for _ in range(d.clone_updates):
-        batch = buffer.sample()
-        # the teacher saturates at the bounds, where tanh has no finite preimage
-        target = teacher(batch.clone())["action"].clamp(-0.97, 0.97)
-        clone_loss = (actor(batch)["action"] - target).pow(2).mean()
-        clone_loss.backward()
+        _clone_loss(loss.actor_network, teacher, buffer.sample()).backward()
         opt_actor.step()
         opt_actor.zero_grad()
     with warnings.catch_warnings():  # re-initialising the targets on purpose: they lag the clone
@@ -564,6 +574,15 @@ def _pretrain(
         opt_critic.step()
         opt_critic.zero_grad()
         target_update.step()
+
+
+def _clone_loss(
+    actor: TensorDictModuleBase, teacher: TensorDictModuleBase, batch: TensorDictBase
+) -> torch.Tensor:
+    """Mean squared distance of the actor's actions from the teacher's on ``batch``'s beliefs."""
+    # the teacher saturates at the bounds, where tanh has no finite preimage
+    target = teacher(batch.clone())["action"].clamp(-0.97, 0.97)
+    return (actor(batch.clone())["action"] - target).pow(2).mean()
 
 
 def _extend(

@@ -23,10 +23,13 @@ from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-__all__ = ["CURVATURES", "FitResult", "fit_theta"]
+__all__ = ["COVARIANCES", "CURVATURES", "FitResult", "fit_theta"]
 
 #: how the iterations measure curvature (the intervals always use the exact Hessian at θ̂)
 CURVATURES = ("hessian", "fisher")
+#: how ``fit_theta`` turns curvature into intervals: the inverse observed information, or the
+#: sandwich ``H⁻¹ (Σ sᵢ sᵢᵀ) H⁻¹`` over trials' scores (robust to an approximate likelihood)
+COVARIANCES = ("hessian", "sandwich")
 
 #: the largest move of one Newton step in any unconstrained coordinate
 MAX_STEP = 1.5
@@ -91,6 +94,7 @@ def fit_theta(
     seed: int = 0,
     curvature: str = "hessian",
     starts: torch.Tensor | None = None,
+    covariance: str = "hessian",
     progress: Callable[[int, int], None] | None = None,
 ) -> FitResult:
     """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``).
@@ -101,10 +105,14 @@ def fit_theta(
     e.g. another estimator's θ̂) replaces the screening with one start per agent. Agents are
     independent rows: an agent's result does not depend on the others in the call. Returns θ̂,
     95% intervals from the observed Fisher information, identifiability flags, the
-    log-likelihood and whether each fit converged.
+    log-likelihood and whether each fit converged. ``covariance="sandwich"`` widens the
+    intervals by how much more the trials' scores vary than the curvature says (they agree
+    when the likelihood is exact).
     """
     if curvature not in CURVATURES:
         raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
+    if covariance not in COVARIANCES:
+        raise ValueError(f"covariance: expected one of {COVARIANCES}, got {covariance!r}")
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents, device = trials.shape[0], trials.device
@@ -169,7 +177,10 @@ def fit_theta(
         # the undamped Newton decrement: the decrease a full step promises (∞ where the
         # curvature is not positive definite); tiny means θ̂ is reached
         decrement = _newton_decrement(h, g)
-        converged[active] = near[active] & ((decrement < tol) | (idle[active] >= IDLE))
+        # idle on a flat top counts only where the top is a maximum (finite decrement): idle
+        # where the curvature is not negative definite is a stall, not θ̂
+        flat_top = (idle[active] >= IDLE) & torch.isfinite(decrement)
+        converged[active] = near[active] & ((decrement < tol) | flat_top)
         step, d = _damped_step(_absolute(h), g, d)
         # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
         step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
@@ -205,7 +216,11 @@ def fit_theta(
     # the observed information at θ̂ (rows that ended on Fisher scoring get it computed now)
     _, _, information = derivatives(params[pick], trials, torch.ones_like(near[pick]))
     information = torch.where(near[pick, None, None], hessian[pick], information)
-    intervals = fisher_intervals(space, theta_hat, theta_free_hat, information)
+    meat = None
+    if covariance == "sandwich":
+        _, score, _ = _trial_scores(loss, k, params[pick], trials)
+        meat = score.mT @ score
+    intervals = fisher_intervals(space, theta_hat, theta_free_hat, information, meat)
     return FitResult(
         theta_hat=theta_hat,
         nuisance=params[pick, k:],
@@ -278,6 +293,33 @@ def _damped_step(
     return step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1), damping
 
 
+def _trial_scores(
+    loss: InverseRationalLoss,
+    k: int,
+    params: torch.Tensor,
+    trials: TensorDictBase,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Per-trial log-likelihood ``[n, N]``, scores of the data ``[n, N, p]`` and, with
+    ``generator``, scores of data drawn from the model along the same filter (else ``None``).
+
+    Each trial gets its own copy of the row's parameters, so one backward pass gives every
+    trial's score.
+    """
+    n, n_trials = trials.shape[:2]
+    per_trial = params.detach().unsqueeze(1).expand(n, n_trials, -1).clone().requires_grad_(True)
+    with torch.enable_grad():
+        theta = loss.theta(per_trial[..., :k].reshape(n * n_trials, k)).reshape(n, n_trials, -1)
+        ll, drawn = loss.log_likelihood_and_draws(theta, per_trial[..., k:], trials, generator)
+        if drawn is None:
+            (score,) = torch.autograd.grad(ll.sum(), per_trial)
+            return ll.detach(), score, None
+        both = torch.stack([ll.sum(), drawn.sum()])
+        eye = torch.eye(2, dtype=both.dtype, device=both.device)
+        (scores,) = torch.autograd.grad(both, per_trial, eye, is_grads_batched=True)
+    return ll.detach(), scores[0], scores[1]
+
+
 def _fisher_scoring(
     loss: InverseRationalLoss,
     k: int,
@@ -287,19 +329,11 @@ def _fisher_scoring(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Values ``[n]``, gradients ``[n, p]`` and a sampled Fisher information ``[n, p, p]``.
 
-    Each trial gets its own copy of the row's parameters, so one backward pass gives every
-    trial's score of data drawn from the model; trials are independent given θ, so the sum of
-    their outer products estimates the Fisher information with the draws of all trials.
+    Trials are independent given θ, so the sum of the outer products of their scores of drawn
+    data estimates the Fisher information with the draws of all trials.
     """
-    n, n_trials = trials.shape[:2]
-    per_trial = params.detach().unsqueeze(1).expand(n, n_trials, -1).clone().requires_grad_(True)
-    with torch.enable_grad():
-        theta = loss.theta(per_trial[..., :k].reshape(n * n_trials, k)).reshape(n, n_trials, -1)
-        ll, drawn = loss.log_likelihood_and_draws(theta, per_trial[..., k:], trials, generator)
-        both = torch.stack([ll.sum(), drawn.sum()])
-        eye = torch.eye(2, dtype=both.dtype, device=both.device)
-        (scores,) = torch.autograd.grad(both, per_trial, eye, is_grads_batched=True)
-    return -ll.detach().sum(1), -scores[0].sum(1), scores[1].mT @ scores[1]
+    ll, score, drawn = _trial_scores(loss, k, params, trials, generator)
+    return -ll.sum(1), -score.sum(1), drawn.mT @ drawn
 
 
 def _screen_starts(

@@ -114,6 +114,7 @@ def simulate_recordings(
         theta = space.from_dict(_theta_values(config.theta, "theta"), prior, "theta")
         world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
         policy = motor_noise_policy(actor, model.action_spec.to(target), config.motor_noise)
+        bar = tqdm(total=model.max_steps, desc="simulate", unit="step", disable=not progress)
         trials = simulate_agents(
             model,
             policy,
@@ -121,8 +122,9 @@ def simulate_recordings(
             config.n_trials,
             world.to(target),
             seed=seed + 1,
-            progress=progress,
+            progress=lambda i, n: bar.update(i - bar.n),
         ).cpu()
+        bar.close()
         simulate_s = time.perf_counter() - start
         agents = []
         for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
@@ -353,6 +355,7 @@ def _fit_groups(
                     max_iter=config.max_iter,
                     seed=seed,
                     curvature="fisher",
+                    covariance=config.covariance,
                     starts=starts,
                     progress=lambda i, n: bar.update(1),
                 )

@@ -15,6 +15,7 @@ import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
-from irc_torchrl.algorithms.fit import CURVATURES, FitResult, fit_theta
+from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
@@ -84,10 +85,7 @@ class Recovery2DConfig:
             raise ValueError("config: n_prior_agents + n_mistaken_agents must be ≥ 1")
         if not self.motor_noise > 0:
             raise ValueError(f"config: motor_noise must be > 0, got {self.motor_noise}")
-        if self.fit.curvature not in CURVATURES:
-            raise ValueError(
-                f"config: fit.curvature must be one of {CURVATURES}, got {self.fit.curvature!r}"
-            )
+        self.fit.validate()
         unknown = [m for m in self.method_list if m not in METHODS]
         if unknown or not self.method_list:
             raise ValueError(
@@ -103,7 +101,10 @@ class Recovery2DConfig:
 
 
 def simulate_recovery_agents(
-    model: Firefly2DModel, actor, config: Recovery2DConfig, progress: bool = False
+    model: Firefly2DModel,
+    actor,
+    config: Recovery2DConfig,
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
     """Draw θ* and simulate both groups: ``(trials, theta_true, mistaken)``.
 
@@ -158,7 +159,7 @@ def recover_firefly2d(
     space = model.theta_space
     start = time.perf_counter()
     trials, theta_true, mistaken = simulate_recovery_agents(
-        model, actor, config, progress is not None
+        model, actor, config, None if progress is None else partial(progress, "simulate")
     )
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
@@ -189,6 +190,7 @@ def recover_firefly2d(
             n_screen=config.fit.n_screen,
             max_iter=config.fit.max_iter,
             curvature=config.fit.curvature,
+            covariance=config.fit.covariance,
             starts=starts,
             seed=config.seed + 2,
             progress=None if progress is None else lambda i, n, m=method: progress(m, i, n),
@@ -236,7 +238,8 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
 
         def progress(method: str, i: int, n: int) -> None:
             if method not in bars:
-                bars[method] = tqdm(total=n, desc=f"fit ({method})", disable=not show_progress)
+                desc = method if method == "simulate" else f"fit ({method})"
+                bars[method] = tqdm(total=n, desc=desc, disable=not show_progress)
             bars[method].update(1)
 
         trials, summary, _ = recover_firefly2d(config, progress)

@@ -56,6 +56,7 @@ def recover_agents(
         n_screen=fit.n_screen,
         max_iter=fit.max_iter,
         curvature=fit.curvature,
+        covariance=fit.covariance,
         seed=seed + 2,
         progress=progress,
     )

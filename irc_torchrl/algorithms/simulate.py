@@ -7,13 +7,15 @@ experimenter never has: ``theta`` and the agent's ``belief``.
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import TensorSpec
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
-from tqdm.auto import tqdm
 
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
@@ -70,7 +72,7 @@ def simulate_agents(
     n_trials: int,
     task_theta: torch.Tensor | None = None,
     seed: int = 0,
-    progress: bool = False,
+    progress: Callable[[int, int], None] | None = None,
 ) -> TensorDict:
     """Run ``n_trials`` trials for each agent θ (``[n_agents, d]``) and return held trials.
 
@@ -78,7 +80,8 @@ def simulate_agents(
         policy: a TorchRL policy reading the belief (e.g. :func:`boltzmann_policy`);
             ``None`` acts at random.
         task_theta: the world's θ, ``[d]`` or ``[n_agents, d]``; ``None``: each agent's own.
-        progress: a progress bar over the time steps (all trials advance together).
+        progress: called as ``progress(steps_done, max_steps)`` after each time step (all
+            trials advance together).
     """
     space = model.theta_space
     theta = space.validate(theta, "theta")
@@ -98,14 +101,13 @@ def simulate_agents(
         ),
         EKFBelief(model),
     )
-    bar = tqdm(total=model.max_steps, desc="simulate", unit="step", disable=not progress)
+    done = itertools.count(1)
+    callback = None if progress is None else lambda *_: progress(next(done), model.max_steps)
     with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         torch.manual_seed(seed)
-        rollout = env.rollout(
-            model.max_steps, policy, lambda *_: bar.update(), break_when_any_done=False
-        )
-    bar.update(bar.total - bar.n)  # rollout calls back between steps, not after the last
-    bar.close()
+        rollout = env.rollout(model.max_steps, policy, callback, break_when_any_done=False)
+    if progress is not None:  # rollout calls back between steps, not after the last
+        progress(model.max_steps, model.max_steps)
     keys = ["state", "action", "target", "task_theta", "theta", "belief"]
     trials = rollout.select(*keys)
     trials["mask"] = first_trial_mask(rollout["next", "done"].squeeze(-1))

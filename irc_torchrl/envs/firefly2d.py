@@ -235,6 +235,15 @@ class Firefly2DModel(TaskModel):
     def stops(self, action, step):
         return (action[..., :1] < self.stop_threshold) & (step >= self.min_steps)
 
+    def scored_actions(self, action, step):
+        """On stopping, the angular control moves nothing: only the stop itself is scored.
+
+        It matters: at the target the bearing, and with it the actor's angular output, turns
+        on millimetres of belief, so this one component would dominate the likelihood.
+        """
+        stop = self.stops(action, step)
+        return torch.cat([torch.ones_like(stop), ~stop], -1)
+
     def effort(self, action: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         """The effort cost ``effort_cost ‖a‖²`` of one step, ``[*B, 1]``."""
         effort = (action.to(theta.dtype) ** 2).sum(-1, keepdim=True)

@@ -77,6 +77,15 @@ class TaskModel(abc.ABC):
     def stops(self, action: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
         """Whether ``action`` taken at ``step`` ends the trial by stopping, ``[*B, 1]`` bool."""
 
+    def scored_actions(self, action: torch.Tensor, step: torch.Tensor) -> torch.Tensor | None:
+        """Which components of ``action`` an inverse scores, ``[*B, da]`` bool; ``None``: all.
+
+        A component with no consequence (it moves nothing, ends nothing) says little about the
+        agent's model and, for a subject, is not controlled; leaving it out of the likelihood
+        is ignorable, since which components are left out depends on recorded data only.
+        """
+        return None
+
     @abc.abstractmethod
     def reward(
         self,

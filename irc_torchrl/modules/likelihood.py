@@ -16,17 +16,28 @@ from torch import nn
 __all__ = ["BoltzmannActionModel", "CensoredGaussianActionModel", "gaussian_log_prob_of_draw"]
 
 
+def _scored_sum(logp: torch.Tensor, scored: torch.Tensor | None) -> torch.Tensor:
+    """``logp [*B, da]`` summed over the scored action components (all when ``None``)."""
+    if scored is not None:
+        logp = torch.where(scored, logp, torch.zeros_like(logp))
+    return logp.sum(-1)
+
+
 def gaussian_log_prob_of_draw(
-    mean: torch.Tensor, var: torch.Tensor, generator: torch.Generator
+    mean: torch.Tensor,
+    var: torch.Tensor,
+    generator: torch.Generator,
+    scored: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """``Σ log N(ã; mean, var)`` over the last dim for ``ã`` drawn from it and held fixed.
+    """``Σ log N(ã; mean, var)`` over the (scored) last dim for ``ã`` drawn and held fixed.
 
     Its gradient is ``(∂mean)ᵀ ε/σ + (∂var)ᵀ (ε² − 1)/(2 var)`` with ``ε ~ N(0, 1)``: a score
     whose expected outer product is the Gaussian's Fisher information.
     """
     noise = torch.randn(mean.shape, dtype=mean.dtype, generator=generator).to(mean.device)
     draw = (mean + var.sqrt() * noise).detach()
-    return (-0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+    logp = -0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)
+    return _scored_sum(logp, scored)
 
 
 class BoltzmannActionModel(nn.Module):
@@ -94,9 +105,13 @@ class CensoredGaussianActionModel(nn.Module):
         self.nuisance_init = torch.full((da,), math.log(motor_noise))
 
     def log_prob(
-        self, features: torch.Tensor, action: torch.Tensor, nuisance: torch.Tensor
+        self,
+        features: torch.Tensor,
+        action: torch.Tensor,
+        nuisance: torch.Tensor,
+        scored: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """``log p(action)`` summed over action dimensions, ``[*B]``."""
+        """``log p(action)`` summed over the ``scored`` action dimensions (all), ``[*B]``."""
         mean = self.actor(features).to(features.dtype)
         std = nuisance.exp()
         low, high = self.low.to(features.dtype), self.high.to(features.dtype)
@@ -106,14 +121,19 @@ class CensoredGaussianActionModel(nn.Module):
         above = torch.special.log_ndtr((mean - high) / std)
         logp = torch.where(action <= low + self.atol, below, density)
         logp = torch.where(action >= high - self.atol, above, logp)
-        return logp.sum(-1)
+        return _scored_sum(logp, scored)
 
     def log_prob_of_draw(
-        self, features: torch.Tensor, nuisance: torch.Tensor, generator: torch.Generator
+        self,
+        features: torch.Tensor,
+        nuisance: torch.Tensor,
+        generator: torch.Generator,
+        scored: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """``log p(ã)`` of an action drawn from the model (held fixed), unclipped, ``[*B]``."""
         mean = self.actor(features).to(features.dtype)
-        return gaussian_log_prob_of_draw(mean, (2 * nuisance).exp().expand_as(mean), generator)
+        var = (2 * nuisance).exp().expand_as(mean)
+        return gaussian_log_prob_of_draw(mean, var, generator, scored)
 
     def assimilate(
         self,
@@ -122,6 +142,7 @@ class CensoredGaussianActionModel(nn.Module):
         cov: torch.Tensor,
         action: torch.Tensor,
         nuisance: torch.Tensor,
+        scored: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Score an action whose policy input is uncertain, and condition that input on it.
 
@@ -137,6 +158,8 @@ class CensoredGaussianActionModel(nn.Module):
             cov: the covariance of ``z``, ``[*B, dz, dz]``.
             action: the recorded action, ``[*B, da]``.
             nuisance: log motor-noise standard deviations, ``[*B, da]``.
+            scored: which action dimensions to score and condition on, ``[*B, da]``; all
+                when ``None``.
 
         Returns:
             ``log p(action)`` ``[*B]``, the shift of ``z``'s mean ``[*B, dz]`` and its
@@ -166,9 +189,10 @@ class CensoredGaussianActionModel(nn.Module):
             tail = torch.special.log_ndtr(-alpha)
             ratio = torch.exp(-0.5 * alpha**2 - 0.5 * math.log(2 * math.pi) - tail)
             clipped = upper | lower
-            logp = logp + torch.where(clipped, tail, interior)
-            moved = torch.where(clipped, sign * std * ratio, a - m)
-            shrink = torch.where(clipped, ratio * (ratio - alpha), torch.ones_like(m))
+            keep = torch.ones_like(m) if scored is None else scored[..., i].to(m.dtype)
+            logp = logp + keep * torch.where(clipped, tail, interior)
+            moved = keep * torch.where(clipped, sign * std * ratio, a - m)
+            shrink = keep * torch.where(clipped, ratio * (ratio - alpha), torch.ones_like(m))
             shift = shift + cov_j * (moved / var).unsqueeze(-1)
             cov = cov - cov_j.unsqueeze(-1) * cov_j.unsqueeze(-2) * (shrink / var)[..., None, None]
             cov = 0.5 * (cov + cov.transpose(-1, -2))

@@ -60,11 +60,17 @@ class Intervals:
 
 
 def fisher_intervals(
-    space: ThetaSpace, theta_hat: torch.Tensor, theta_free_hat: torch.Tensor, hessian: torch.Tensor
+    space: ThetaSpace,
+    theta_hat: torch.Tensor,
+    theta_free_hat: torch.Tensor,
+    hessian: torch.Tensor,
+    meat: torch.Tensor | None = None,
 ) -> Intervals:
     """Intervals for the free parameters from the Hessian over ``[free θ, nuisance]``.
 
-    Fixed parameters get zero width. ``hessian`` is ``[n, p, p]`` with the free θ first.
+    Fixed parameters get zero width. ``hessian`` is ``[n, p, p]`` with the free θ first. With
+    ``meat`` (``Σ sᵢ sᵢᵀ`` over independent trials' scores, ``[n, p, p]``) the covariance is the
+    sandwich ``H⁻¹ (Σ sᵢ sᵢᵀ) H⁻¹``, honest where the likelihood is an approximation.
     """
     n, d = theta_hat.shape
     device = theta_hat.device
@@ -78,6 +84,8 @@ def fisher_intervals(
     unbounded = ((loading > 1e-8) & ~positive.unsqueeze(1)).any(-1)
     inv_eig = torch.where(positive, 1 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
     cov_u = (eigvec * inv_eig.unsqueeze(-2)) @ eigvec.transpose(-1, -2)
+    if meat is not None:
+        cov_u = cov_u @ meat @ cov_u
     var_u = cov_u.diagonal(dim1=-2, dim2=-1)[:, :k]
     sd_u = torch.where(unbounded, torch.full_like(var_u, torch.inf), var_u.clamp_min(0).sqrt())
     # dθ/du of the scaled logit, for the delta-method standard deviation in natural units

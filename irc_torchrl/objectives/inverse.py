@@ -173,9 +173,12 @@ class InverseRationalLoss(LossModule):
             means, covs, target.unsqueeze(2), steps, theta_b.unsqueeze(2)
         )[mask]  # score only the recorded steps: trials end at different times
         nuisance = nuisance_b.unsqueeze(2).expand(*mask.shape, -1)[mask]
-        logp = self.action_model.log_prob(features, action[mask], nuisance)
+        scored = self.model.scored_actions(action, steps.expand(*mask.shape, 1))
+        # a task that scores every component keeps the action model's own signature
+        extra = () if scored is None else (scored[mask],)
+        logp = self.action_model.log_prob(features, action[mask], nuisance, *extra)
         drawn = (
-            self.action_model.log_prob_of_draw(features, nuisance, generator)
+            self.action_model.log_prob_of_draw(features, nuisance, generator, *extra)
             if generator is not None
             else torch.zeros_like(logp)
         )

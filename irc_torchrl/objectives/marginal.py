@@ -91,11 +91,12 @@ def marginal_filter(
         mean, cov, outer = mean[:n], cov[:n], outer[:n]
         step = torch.full((n, 1), t, dtype=torch.long, device=state.device)
         out, jac = _rowwise_jacobian(policy, mean, cov, target[:n], step, theta[:n])
+        scored = model.scored_actions(action[:n, t], step)
         logp, shift, outer, (m, var) = action_model.assimilate(
-            out, jac, outer, action[:n, t], nuisance[:n]
+            out, jac, outer, action[:n, t], nuisance[:n], scored
         )
         if generator is not None:
-            draws.append(gaussian_log_prob_of_draw(m, var, generator))
+            draws.append(gaussian_log_prob_of_draw(m, var, generator, scored))
         mean = mean + shift
         logps.append(logp)
         means.append(mean)
