@@ -79,7 +79,10 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
                 ("pursuit", BeliefPursuit(model)),
             )
         }
-        rows.append({"theta": values, **score, "ratio": score["ensemble"] / score["specialist"]})
+        # a ratio means nothing against a specialist that never learned (return ≤ 0)
+        learned = score["specialist"] > 0
+        ratio = score["ensemble"] / score["specialist"] if learned else None
+        rows.append({"theta": values, **score, "ratio": ratio})
     return rows
 
 
@@ -158,7 +161,8 @@ def main() -> None:
     for i, row in enumerate(rows):
         print(
             f"{i:>4} {row['ensemble']:>9.2f} {row['specialist']:>10.2f} "
-            f"{row['pursuit']:>8.2f} {row['ratio']:>6.2f}"
+            f"{row['pursuit']:>8.2f} "
+            + (f"{row['ratio']:>6.2f}" if row["ratio"] is not None else "specialist did not learn")
         )
     model = runs[0]["model"]
     history = runs[0]["history"]
