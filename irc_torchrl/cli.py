@@ -200,6 +200,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     _add_common(
         fit,
         "settings: n_screen, n_starts, max_iter, motor_noise (initial), threads, "
+        "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
     )
@@ -210,7 +211,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         description=(
             "Read DIR/summary.json and write PNG figures into DIR: θ̂ against the true θ with "
             "95% intervals where the truth is known (else θ̂ with intervals per recording), "
-            "the recovered beliefs (from beliefs.npz), and training curves for `irc train`."
+            "the recovered beliefs (from beliefs.npz), training curves for `irc train`, and for "
+            "the 2D task q_function.png (Q of the run's checkpoint, paper Fig. 1B)."
         ),
     )
     report.add_argument("folder", metavar="DIR", help="a run folder with a summary.json")
