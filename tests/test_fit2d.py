@@ -102,6 +102,10 @@ def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch
     outside[0] = 5.0
     with pytest.raises(ValueError, match="starts"):
         fit_theta(loss, held, starts=outside.unsqueeze(0))
+    with pytest.raises(ValueError, match="n_screen, n_starts: expected"):
+        fit_theta(loss, held, n_screen=0)
+    with pytest.raises(ValueError, match="n_screen, n_starts: expected"):
+        fit_theta(loss, held, n_starts=0)
     with pytest.raises((KeyError, ValueError), match="g_x"):
         model.theta_space.free("g_x")
     bad = held.clone()

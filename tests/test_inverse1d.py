@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy import stats
 
-from irc_torchrl.algorithms.fit import fit_theta
+from irc_torchrl.algorithms.fit import _screen_starts, fit_theta
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
 from irc_torchrl.envs.firefly1d import STOP
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -322,8 +322,10 @@ def test_sandwich_agrees_with_the_hessian_when_the_likelihood_is_exact(
     information says: sandwich and Hessian standard deviations agree within 35%."""
     theta_true, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 2)
     loss = make_loss(firefly1d_model, trained_q, 6)
-    plain = fit_theta(loss, trials, seed=0, starts=theta_true)
-    sandwich = fit_theta(loss, trials, seed=0, starts=theta_true, covariance="sandwich")
+    plain = fit_theta(loss, trials, seed=0, starts=theta_true, n_screen=0)
+    sandwich = fit_theta(
+        loss, trials, seed=0, starts=theta_true, n_screen=0, covariance="sandwich"
+    )
     torch.testing.assert_close(sandwich.theta_hat, plain.theta_hat)
     ratio = sandwich.intervals.std[:, :2] / plain.intervals.std[:, :2]
     assert ((ratio > 0.65) & (ratio < 1.35)).all(), ratio
@@ -370,3 +372,18 @@ def test_fit_rejects_bad_trials_before_any_work(firefly1d_model, trained_q, smal
     ok["state"][unrecorded] = float("nan")
     with pytest.raises(AssertionError, match="before the trials were validated"):
         fit_theta(loss, ok, seed=0)
+
+
+def test_a_start_competes_with_the_screened_draws(firefly1d_model, trained_q, space):
+    """``fit_theta(starts=...)``: each agent's start joins the screened prior draws and the
+    most likely candidates are kept; with ``n_screen=0`` the start is the only one."""
+    theta_true, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1, n_agents=2)
+    loss = make_loss(firefly1d_model, trained_q, 2)
+    truth = space.to_unconstrained(theta_true)[:, space.free_mask]
+    k = truth.shape[1]
+    for n_screen in (0, 3):  # on 100 trials the truth beats 3 draws from the prior
+        chosen = _screen_starts(loss, trials, n_screen, 1, seed=0, starts=theta_true)
+        torch.testing.assert_close(chosen[:, :k], truth)
+    pairs = _screen_starts(loss, trials, 3, 2, seed=0, starts=theta_true).view(2, 2, -1)
+    torch.testing.assert_close(pairs[:, 0, :k], truth)  # the most likely first
+    assert not torch.equal(pairs[:, 1, :k], truth)

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
@@ -18,15 +19,17 @@ class Affine(torch.nn.Module):
         return torch.tanh(features @ self.weight.to(features.dtype))
 
 
-def _model(motor_noise=0.3):
+def _model(motor_noise=0.3, lapse=0.0):
     weight = torch.tensor([[1.5, -0.5], [0.3, 2.0]], dtype=torch.float64)
     low, high = -torch.ones(2), torch.ones(2)
-    return CensoredGaussianActionModel(Affine(weight), low, high, motor_noise)
+    return CensoredGaussianActionModel(Affine(weight), low, high, motor_noise, lapse=lapse)
 
 
-def test_censored_gaussian_is_a_distribution_with_point_masses_at_the_bounds():
-    """Interior density integrates with the two tail masses to 1 (per dimension, grid 1e-4)."""
-    model = _model()
+@pytest.mark.parametrize("lapse", [0.0, 0.05])
+def test_censored_gaussian_is_a_distribution_with_point_masses_at_the_bounds(lapse):
+    """Interior density integrates with the two tail masses to 1 (per dimension, grid 1e-4),
+    with or without lapses."""
+    model = _model(lapse=lapse)
     features = torch.tensor([[0.4, 0.9]], dtype=torch.float64)
     nuisance = model.nuisance_init.double()
     grid = torch.linspace(-1 + 1e-4, 1 - 1e-4, 20001, dtype=torch.float64)
@@ -36,7 +39,8 @@ def test_censored_gaussian_is_a_distribution_with_point_masses_at_the_bounds():
         action = torch.full((len(grid), 2), mean[1 - dim].item(), dtype=torch.float64)
         action[:, dim] = grid
         joint = model.log_prob(features.expand(len(grid), -1), action, nuisance).exp()
-        other_density = math.exp(-math.log(0.3) - 0.5 * math.log(2 * math.pi))
+        peak = math.exp(-math.log(0.3) - 0.5 * math.log(2 * math.pi))
+        other_density = (1 - lapse) * peak + lapse / 4  # the lapse's density: 1 / (2 × width 2)
         interior = torch.trapezoid(joint / other_density, grid)
         edge = action[:2].clone()
         edge[0, dim], edge[1, dim] = -1.0, 1.0
@@ -82,3 +86,48 @@ def test_boltzmann_probabilities_sum_to_one_and_sharpen_with_temperature():
     cold = model.log_prob(features, best, torch.tensor([-4.0], dtype=torch.float64)).exp()
     warm = model.log_prob(features, best, torch.tensor([0.0], dtype=torch.float64)).exp()
     assert (cold >= warm).all()
+
+
+def test_a_lapse_caps_what_an_unexplained_action_costs():
+    """An action 3 units from the policy's output costs ~50 nats per dimension without a
+    lapse; with lapse ε it costs at most -log(ε/4), and an action at the output loses only
+    about ε."""
+    features = torch.tensor([[0.4, 0.9]], dtype=torch.float64)
+    plain, robust = _model(motor_noise=0.1), _model(motor_noise=0.1, lapse=1e-3)
+    nuisance = plain.nuisance_init.double()
+    mean = plain.actor(features)
+    far = mean - 3 * mean.sign() * 0.3  # inside the bounds, 9 noise sd away
+    assert plain.log_prob(features, far, nuisance) < -70
+    cap = 2 * math.log(1e-3 / 4)
+    assert robust.log_prob(features, far, nuisance) > cap - 1e-6
+    gap = plain.log_prob(features, mean, nuisance) - robust.log_prob(features, mean, nuisance)
+    assert 0 < gap < 2.1e-3
+
+
+def test_a_lapse_keeps_an_unexplained_action_from_moving_the_belief():
+    """The outer filter's update: a typical action moves the latent input as without a lapse,
+    an action the prediction cannot explain leaves it (nearly) where it was; the covariance
+    stays symmetric positive definite."""
+    dz = 3
+    torch.manual_seed(0)
+    root = torch.randn(dz, dz, dtype=torch.float64)
+    cov = 1e-3 * (root @ root.T) + 1e-4 * torch.eye(dz, dtype=torch.float64)
+    jac = torch.randn(2, dz, dtype=torch.float64)
+    mean = torch.tensor([0.1, -0.2], dtype=torch.float64)
+    cross, cov_action = cov @ jac.T, jac @ cov @ jac.T
+    nuisance = torch.full((2,), math.log(0.1), dtype=torch.float64)
+    plain, robust = _model(), _model(lapse=1e-3)
+    sd = (cov_action.diagonal() + 0.01).sqrt()  # the predictive sd: spread and motor noise
+    typical, wild = mean + 0.5 * sd, mean + 8 * sd * torch.tensor([-1.0, 1.0])
+    assert wild.abs().max() < 0.95  # inside the bounds
+    moved = {}
+    for name, model in (("plain", plain), ("robust", robust)):
+        for kind, action in (("typical", typical), ("wild", wild)):
+            _, shift, post, _ = model.assimilate(mean, cross, cov_action, cov, action, nuisance)
+            assert torch.linalg.eigvalsh(post).min() > 0
+            torch.testing.assert_close(post, post.T)
+            moved[name, kind] = shift.norm()
+    torch.testing.assert_close(
+        moved["robust", "typical"], moved["plain", "typical"], rtol=0.02, atol=0
+    )
+    assert moved["robust", "wild"] < 0.05 * moved["plain", "wild"], moved

@@ -18,10 +18,12 @@ T = 10
 
 class _Policy(torch.nn.Module):
     """A smooth stand-in actor: steers by the believed target (features 0-1) and damps the
-    believed velocities (features 5-6), so its actions reveal the agent's belief."""
+    believed velocities (features 5-6), so its actions reveal the agent's belief; a larger
+    ``sharpness`` makes it switch more abruptly with the belief."""
 
-    def __init__(self):
+    def __init__(self, sharpness: float = 1.0):
         super().__init__()
+        self.sharpness = sharpness
         torch.manual_seed(0)
         self.mlp = MLP(in_features=23, out_features=2, num_cells=[16]).double()
         with torch.no_grad():
@@ -31,13 +33,15 @@ class _Policy(torch.nn.Module):
     def forward(self, features):
         ahead, aside, v, w = (features[..., i] for i in (0, 1, 5, 6))
         drive = torch.stack([2.5 * ahead + 0.6 - 0.8 * v, 3.0 * aside - 0.8 * w], -1)
-        return torch.tanh(drive + self.mlp(features))
+        return torch.tanh(self.sharpness * drive + self.mlp(features))
 
 
-def _simulate(theta, motor, n, seed):
+def _simulate(theta, motor, n, seed, sharpness=1.0, lapse=0.0):
     """Trials of an agent running its EKF on noisy observations; returns states, actions."""
     g = torch.Generator().manual_seed(seed)
-    action_model = CensoredGaussianActionModel(_Policy(), -torch.ones(2), torch.ones(2))
+    action_model = CensoredGaussianActionModel(
+        _Policy(sharpness), -torch.ones(2), torch.ones(2), lapse=lapse
+    )
     theta = theta.expand(n, -1)
     state, target = MODEL.initial_state(theta, g)
     mean, cov = MODEL.initial_belief(state, target, theta)
@@ -89,20 +93,29 @@ def _monte_carlo(action_model, theta, nuisance, state, action, target, samples, 
     return total.logsumexp(-1) - math.log(samples)
 
 
-@pytest.mark.parametrize("obs_noise", [0.3, 0.8])
-def test_marginal_likelihood_matches_monte_carlo(obs_noise):
-    """The outer filter's likelihood is within 0.1 nats (per 10-step trial) of brute force;
-    the hard E-step is much further off (it ignores the spread of the agent's beliefs)."""
+@pytest.mark.parametrize(
+    "obs_noise, lapse, moments",
+    [
+        (0.3, 0.0, "cubature"),
+        (0.8, 0.0, "cubature"),
+        (0.8, 1e-3, "cubature"),
+        (0.3, 0.0, "linearised"),
+    ],
+)
+def test_marginal_likelihood_matches_monte_carlo(obs_noise, lapse, moments):
+    """The outer filter's likelihood is within 0.1 nats (per 10-step trial) of brute force
+    (measured ≤ 0.01); the hard E-step is much further off (it ignores the spread of the
+    agent's beliefs)."""
     theta = SPACE.from_dict(
         {"obs_sigma_v": obs_noise, "obs_sigma_w": obs_noise, "sigma_v": 0.1, "sigma_w": 0.1}
     ).double()
     motor = 0.15
-    action_model, state, action, target = _simulate(theta, motor, n=6, seed=1)
+    action_model, state, action, target = _simulate(theta, motor, n=6, seed=1, lapse=lapse)
     nuisance = torch.full((6, 2), math.log(motor), dtype=torch.float64)
     theta_b = theta.expand(6, -1)
-    logp = marginal_filter(MODEL, action_model, theta_b, nuisance, state, action, target, theta_b)[
-        0
-    ].sum(-1)
+    logp = marginal_filter(
+        MODEL, action_model, theta_b, nuisance, state, action, target, theta_b, moments=moments
+    )[0].sum(-1)
     mc = _monte_carlo(action_model, theta, nuisance, state, action, target, 20000, seed=2)
     # the hard E-step: the same filter with the outer covariance held at zero
     map_logp = torch.zeros(6, dtype=torch.float64)
@@ -115,6 +128,29 @@ def test_marginal_likelihood_matches_monte_carlo(obs_noise):
             mean, cov = ekf_step(MODEL, mean, cov, action[:, t], obs, theta_b)
     assert (logp - mc).abs().max() < 0.1, logp - mc
     assert (map_logp - mc).abs().mean() > 3 * (logp - mc).abs().mean()
+
+
+def test_cubature_follows_a_sharply_switching_policy_better_than_the_tangent():
+    """Where the policy bends within the spread of the agent's belief, the cubature rule's
+    likelihood is nearer brute force than the linearisation's (measured mean error 0.017
+    against 0.051 nats per trial)."""
+    theta = SPACE.from_dict(
+        {"obs_sigma_v": 0.3, "obs_sigma_w": 0.3, "sigma_v": 0.1, "sigma_w": 0.1}
+    ).double()
+    action_model, state, action, target = _simulate(theta, 0.15, n=6, seed=1, sharpness=6.0)
+    nuisance = torch.full((6, 2), math.log(0.15), dtype=torch.float64)
+    theta_b = theta.expand(6, -1)
+    mc = _monte_carlo(action_model, theta, nuisance, state, action, target, 20000, seed=2)
+    error = {
+        rule: (
+            marginal_filter(
+                MODEL, action_model, theta_b, nuisance, state, action, target, theta_b,
+                moments=rule,
+            )[0].sum(-1) - mc
+        ).abs().mean()
+        for rule in ("cubature", "linearised")
+    }  # fmt: skip
+    assert error["cubature"] < 0.6 * error["linearised"], error
 
 
 def _trials(n_agents, n_trials, theta, motor, seed):

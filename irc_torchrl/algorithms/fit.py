@@ -102,7 +102,8 @@ def fit_theta(
     ``n_screen`` candidates (the prior's default and draws from the prior, the same for every
     agent) are scored by likelihood alone; Newton runs from each agent's best ``n_starts`` of
     them and the best end point per agent is kept. ``starts`` (natural θ ``[n_agents, d]``,
-    e.g. another estimator's θ̂) replaces the screening with one start per agent. Agents are
+    e.g. another estimator's θ̂) joins each agent's candidates (with ``n_screen=0`` it is the
+    only start). Agents are
     independent rows: an agent's result does not depend on the others in the call. Returns θ̂,
     95% intervals from the observed Fisher information, identifiability flags, the
     log-likelihood and whether each fit converged. ``covariance="sandwich"`` widens the
@@ -125,11 +126,13 @@ def fit_theta(
                 f"starts: expected one θ per agent, [{n_agents}, {space.dim}], "
                 f"got {list(starts.shape)}"
             )
-        nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1)
-        params = torch.cat([space.to_unconstrained(starts.cpu())[:, free], nuisance], -1)
-        n_starts = 1
-    else:
-        params = _screen_starts(loss, trials, n_screen, n_starts, seed)
+    if n_screen < (0 if starts is not None else 1) or n_starts < 1:
+        raise ValueError(
+            f"n_screen, n_starts: expected n_starts ≥ 1 and n_screen ≥ 1 (≥ 0 with starts), "
+            f"got {n_screen}, {n_starts}"
+        )
+    params = _screen_starts(loss, trials, n_screen, n_starts, seed, starts)
+    n_starts = params.shape[0] // n_agents
     rows = (
         trials.unsqueeze(1)
         .expand(n_agents, n_starts, *trials.shape[1:])
@@ -342,30 +345,36 @@ def _screen_starts(
     n_screen: int,
     n_starts: int,
     seed: int,
+    starts: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The ``n_starts`` most likely of ``n_screen`` prior draws per agent, ``[A·n_starts, p]``."""
+    """Each agent's ``n_starts`` most likely candidates, ``[A·n, p]``.
+
+    The candidates are ``n_screen`` prior draws (the same for every agent: an agent's fit
+    depends on its data and the seed alone, not on which other agents share the call), spread
+    evenly by a Sobol sequence, plus the agent's own ``starts`` row (natural θ) if given.
+    """
     space = loss.theta_space
-    n_agents = trials.shape[0]
-    # the same candidates for every agent (an agent's fit depends on its data and the seed
-    # alone, not on which other agents share the call), spread evenly by a Sobol sequence
+    n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
     low, high = space.low(torch.float64)[free], space.high(torch.float64)[free]
-    sobol = torch.quasirandom.SobolEngine(int(free.sum()), scramble=True, seed=seed)
     draws = space.default(torch.float64).expand(n_screen, -1).clone()
-    draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
-    draws[0] = space.default(torch.float64)
-    u = space.to_unconstrained(draws)[:, free].to(trials.device)
-    nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1).to(trials.device)
+    if n_screen:
+        sobol = torch.quasirandom.SobolEngine(int(free.sum()), scramble=True, seed=seed)
+        draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
+        draws[0] = space.default(torch.float64)
+    candidates = space.to_unconstrained(draws)[:, free].to(device).expand(n_agents, -1, -1)
+    if starts is not None:
+        own = space.to_unconstrained(starts.cpu())[:, free].to(device).unsqueeze(1)
+        candidates = torch.cat([candidates, own], 1)
+    nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1).to(device)
     with torch.no_grad():
         scores = torch.stack(
-            [
-                loss.log_likelihood(loss.theta(u_s.expand(n_agents, -1)), nuisance, trials)
-                for u_s in u
-            ],
+            [loss.log_likelihood(loss.theta(u), nuisance, trials) for u in candidates.unbind(1)],
             1,
         )
-    best = scores.topk(n_starts, dim=1).indices  # [A, n_starts]
-    chosen = u[best]
-    return torch.cat([chosen, nuisance.unsqueeze(1).expand(-1, n_starts, -1)], -1).reshape(
-        n_agents * n_starts, -1
+    n = min(n_starts, candidates.shape[1])
+    best = scores.topk(n, dim=1).indices  # [A, n]
+    chosen = candidates.gather(1, best.unsqueeze(-1).expand(-1, -1, candidates.shape[-1]))
+    return torch.cat([chosen, nuisance.unsqueeze(1).expand(-1, n, -1)], -1).reshape(
+        n_agents * n, -1
     )

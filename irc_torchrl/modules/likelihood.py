@@ -80,11 +80,19 @@ class CensoredGaussianActionModel(nn.Module):
     likelihood), since clipping puts a point mass there. The nuisance is the log motor-noise
     standard deviation per action dimension.
 
+    With ``lapse`` > 0 each action dimension is, with that probability, unrelated to the
+    belief: drawn uniformly over the bounds widened by half their width on each side, then
+    clipped (density ``1/(2 width)`` inside, mass 1/4 at each bound). A lapse caps what one
+    action can cost, so the few actions a Gaussian approximation of the agent's belief
+    cannot explain (near a decision boundary) do not dominate the fit; it costs about
+    ``lapse`` nats per action where there are none.
+
     Args:
         actor: maps belief features ``[*B, df]`` to the noise-free action ``[*B, da]``.
         low, high: the action bounds, ``[da]``.
         motor_noise: the initial motor-noise standard deviation.
         atol: how close to a bound a recorded action counts as clipped.
+        lapse: the lapse probability, in ``[0, 1)``.
     """
 
     def __init__(
@@ -94,8 +102,12 @@ class CensoredGaussianActionModel(nn.Module):
         high: torch.Tensor,
         motor_noise: float = 0.1,
         atol: float = 1e-6,
+        lapse: float = 0.0,
     ) -> None:
         super().__init__()
+        if not 0 <= lapse < 1:
+            raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
+        self.lapse = lapse
         self.actor = actor.requires_grad_(False)
         self.register_buffer("low", torch.as_tensor(low, dtype=torch.float64))
         self.register_buffer("high", torch.as_tensor(high, dtype=torch.float64))
@@ -119,9 +131,21 @@ class CensoredGaussianActionModel(nn.Module):
         density = -0.5 * z**2 - std.log() - 0.5 * math.log(2 * math.pi)
         below = torch.special.log_ndtr((low - mean) / std)
         above = torch.special.log_ndtr((mean - high) / std)
-        logp = torch.where(action <= low + self.atol, below, density)
-        logp = torch.where(action >= high - self.atol, above, logp)
+        lower, upper = action <= low + self.atol, action >= high - self.atol
+        logp = torch.where(upper, above, torch.where(lower, below, density))
+        logp, _ = self._mix_lapse(logp, lower | upper, high - low)
         return _scored_sum(logp, scored)
+
+    def _mix_lapse(
+        self, logp: torch.Tensor, clipped: torch.Tensor, width: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``log p`` of the lapse mixture, and the model's responsibility for the action."""
+        if not self.lapse:
+            return logp, torch.ones_like(logp)
+        lapse = torch.where(clipped, math.log(0.25), -torch.log(2 * width).expand_as(logp))
+        model = logp + math.log1p(-self.lapse)
+        mixed = torch.logaddexp(model, lapse + math.log(self.lapse))
+        return mixed, (model - mixed).exp()
 
     def log_prob_of_draw(
         self,
@@ -138,23 +162,28 @@ class CensoredGaussianActionModel(nn.Module):
     def assimilate(
         self,
         mean: torch.Tensor,
-        jacobian: torch.Tensor,
+        cross: torch.Tensor,
+        cov_action: torch.Tensor,
         cov: torch.Tensor,
         action: torch.Tensor,
         nuisance: torch.Tensor,
         scored: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         """Score an action whose policy input is uncertain, and condition that input on it.
 
-        The policy's input ``z ~ N(ẑ, cov)`` is unseen; linearised, the action is
-        ``mean + jacobian (z - ẑ) + noise``, clipped. Each action dimension is one scalar
-        observation of ``z`` (the motor noise is independent across dimensions): interior
-        values update ``z`` as a Kalman step, clipped ones as a censored (Tobit) observation
-        whose posterior moments are matched.
+        The policy's input ``z ~ N(ẑ, cov)`` is unseen; its noise-free output ``y`` is taken
+        jointly Gaussian with it (``mean``, ``cross`` = Cov(z, y), ``cov_action`` = Cov(y), from
+        a linearisation or a cubature rule) and the action is ``clip(y + noise)``. Each action
+        dimension is one scalar observation of ``(z, y)`` (the motor noise is independent
+        across dimensions): interior values update it as a Kalman step, clipped ones as a
+        censored (Tobit) observation whose posterior moments are matched. With a lapse the
+        posterior is a mixture (conditioned, weighted by the model's responsibility, and not)
+        whose moments are matched.
 
         Args:
-            mean: the policy's output at ``ẑ``, ``[*B, da]``.
-            jacobian: its derivative in ``z``, ``[*B, da, dz]``.
+            mean: the policy's predicted output, ``[*B, da]``.
+            cross: its covariance with ``z``, ``[*B, dz, da]``.
+            cov_action: its covariance, ``[*B, da, da]``.
             cov: the covariance of ``z``, ``[*B, dz, dz]``.
             action: the recorded action, ``[*B, da]``.
             nuisance: log motor-noise standard deviations, ``[*B, da]``.
@@ -169,14 +198,14 @@ class CensoredGaussianActionModel(nn.Module):
         low, high = self.low.to(mean.dtype), self.high.to(mean.dtype)
         noise_var = (2 * nuisance).exp()
         shift = torch.zeros_like(cov[..., 0])
+        shift_action = torch.zeros_like(mean)
         logp = torch.zeros_like(mean[..., 0])
         means, variances = [], []
         for i in range(mean.shape[-1]):
-            j = jacobian[..., i, :]
-            cov_j = (cov @ j.unsqueeze(-1)).squeeze(-1)  # Σ jᵀ
-            var = (j * cov_j).sum(-1) + noise_var[..., i]
+            cov_z, cov_y = cross[..., i], cov_action[..., i]  # Cov(z, y_i), Cov(y, y_i)
+            var = cov_y[..., i] + noise_var[..., i]
             std = var.sqrt()
-            m = mean[..., i] + (j * shift).sum(-1)
+            m = mean[..., i] + shift_action[..., i]
             a = action[..., i]
             # interior: a Gaussian observation
             z = (a - m) / std
@@ -190,11 +219,21 @@ class CensoredGaussianActionModel(nn.Module):
             ratio = torch.exp(-0.5 * alpha**2 - 0.5 * math.log(2 * math.pi) - tail)
             clipped = upper | lower
             keep = torch.ones_like(m) if scored is None else scored[..., i].to(m.dtype)
-            logp = logp + keep * torch.where(clipped, tail, interior)
-            moved = keep * torch.where(clipped, sign * std * ratio, a - m)
-            shrink = keep * torch.where(clipped, ratio * (ratio - alpha), torch.ones_like(m))
-            shift = shift + cov_j * (moved / var).unsqueeze(-1)
-            cov = cov - cov_j.unsqueeze(-1) * cov_j.unsqueeze(-2) * (shrink / var)[..., None, None]
+            step_logp, weight = self._mix_lapse(
+                torch.where(clipped, tail, interior), clipped, high[i] - low[i]
+            )
+            logp = logp + keep * step_logp
+            moved = keep * torch.where(clipped, sign * std * ratio, a - m) / var
+            shrink = keep * torch.where(clipped, ratio * (ratio - alpha), torch.ones_like(m)) / var
+            # a mixture of the conditioned and the unconditioned (lapse) posterior
+            shrink = weight * shrink - weight * (1 - weight) * moved**2
+            moved = (weight * moved).unsqueeze(-1)
+            shift = shift + cov_z * moved
+            shift_action = shift_action + cov_y * moved
+            shrink = shrink[..., None, None]
+            cov = cov - cov_z.unsqueeze(-1) * cov_z.unsqueeze(-2) * shrink
+            cross = cross - cov_z.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink
+            cov_action = cov_action - cov_y.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink
             cov = 0.5 * (cov + cov.transpose(-1, -2))
             means.append(m)
             variances.append(var)

@@ -8,15 +8,18 @@ and ``z_t`` moves linearly in that noise (to first order)::
     z_{t+1} = f(z_t, a_t) + K_{t+1} (h(s_{t+1}) + v_{t+1} - h(f(z_t, a_t))),   v ~ N(0, R_world)
     a_t     = clip(π(z_t, P_t, θ) + ε_t),                                   ε ~ N(0, σ_m²)
 
-An outer Kalman filter over ``z`` (the actor linearised at the current estimate, as exact
-inverse LQG is in the linear case) gives ``log p(a_{0:T} | s_{0:T}, θ)`` with the agent's
-observations integrated out, and ``E[z_t | actions so far]``, the agent's belief as recovered
-from its behaviour. With the outer covariance held at zero this reduces to the hard E-step
-(observations at their most probable value, ``method="map"``).
+An outer Kalman filter over ``z`` gives ``log p(a_{0:T} | s_{0:T}, θ)`` with the agent's
+observations integrated out; the policy's output and its covariance with ``z`` come from a
+cubature rule over ``z``'s spread (an unscented-style filter; or, cheaper, from the actor
+linearised at the current estimate, as exact inverse LQG is in the linear case); and
+``E[z_t | actions so far]``, the agent's belief as recovered from its behaviour. With the
+outer covariance held at zero this reduces to the hard E-step (observations at their most
+probable value, ``method="map"``).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -26,7 +29,12 @@ from irc_torchrl.envs.belief import ekf_gain, ekf_predict, joseph_update
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel, gaussian_log_prob_of_draw
 
-__all__ = ["marginal_filter"]
+__all__ = ["MOMENT_RULES", "marginal_filter"]
+
+#: how the policy's output moments over the uncertain belief are computed
+MOMENT_RULES = ("cubature", "linearised")
+#: variance added to the outer covariance before its Cholesky factor (it starts at zero)
+_JITTER = 1e-10
 
 
 def marginal_filter(
@@ -40,6 +48,7 @@ def marginal_filter(
     task_theta: torch.Tensor,
     mask: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
+    moments: str = "cubature",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
@@ -53,6 +62,8 @@ def marginal_filter(
             only (trials of a dataset differ in length), later outputs are zero.
         generator: if given, each step also scores an action drawn from its predictive
             distribution (:func:`~irc_torchrl.modules.likelihood.gaussian_log_prob_of_draw`).
+        moments: one of :data:`MOMENT_RULES`, how the policy's output over the uncertain
+            belief is predicted (a cubature rule, or the tangent at the mean).
 
     Returns:
         per-step ``log p(a_t | a_{<t}, s)`` ``[*B, T]``; the recovered belief mean
@@ -80,6 +91,8 @@ def marginal_filter(
     mean, cov = model.initial_belief(state[:, 0], target, theta)
     outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
 
+    predict = _cubature if moments == "cubature" else _linearised
+
     def policy(z, p, tg, step, th):
         return action_model.actor(model.belief_features(z, p, tg, step, th))
 
@@ -90,10 +103,10 @@ def marginal_filter(
             break
         mean, cov, outer = mean[:n], cov[:n], outer[:n]
         step = torch.full((n, 1), t, dtype=torch.long, device=state.device)
-        out, jac = _rowwise_jacobian(policy, mean, cov, target[:n], step, theta[:n])
+        predicted = predict(policy, mean, outer, cov, target[:n], step, theta[:n])
         scored = model.scored_actions(action[:n, t], step)
         logp, shift, outer, (m, var) = action_model.assimilate(
-            out, jac, outer, action[:n, t], nuisance[:n], scored
+            *predicted, outer, action[:n, t], nuisance[:n], scored
         )
         if generator is not None:
             draws.append(gaussian_log_prob_of_draw(m, var, generator, scored))
@@ -125,6 +138,36 @@ def marginal_filter(
 
     draws = stack(draws) if draws else torch.zeros_like(stack(logps))
     return stack(logps), stack(means), stack(covs), stack(outers), draws
+
+
+def _linearised(
+    policy: Callable[..., torch.Tensor], z: torch.Tensor, outer: torch.Tensor, *args: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Moments of ``π(z)``, ``z ~ N(z, outer)``, with the policy linearised at ``z``."""
+    out, jac = _rowwise_jacobian(policy, z, *args)
+    cross = outer @ jac.mT
+    return out, cross, jac @ cross
+
+
+def _cubature(
+    policy: Callable[..., torch.Tensor], z: torch.Tensor, outer: torch.Tensor, *args: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Moments of ``π(z)``, ``z ~ N(z, outer)``: mean, Cov(z, π) and Cov(π) by the spherical
+    cubature rule (2 dz points at ±√dz standard deviations).
+
+    Unlike the linearisation, it sees how the policy bends within the belief's spread: near
+    the target the steering flips with the believed bearing, and a tangent at the mean
+    predicts the action with a confidence the agent's own uncertainty does not support.
+    """
+    n, dz = z.shape
+    eye = torch.eye(dz, dtype=z.dtype, device=z.device)
+    root = torch.linalg.cholesky(outer + _JITTER * eye)
+    offsets = math.sqrt(dz) * torch.cat([root.mT, -root.mT], 1)  # [n, 2 dz, dz]
+    points = (z.unsqueeze(1) + offsets).reshape(n * 2 * dz, dz)
+    out = policy(points, *(a.repeat_interleave(2 * dz, 0) for a in args)).view(n, 2 * dz, -1)
+    mean = out.mean(1)
+    spread = out - mean.unsqueeze(1)
+    return mean, offsets.mT @ spread / (2 * dz), spread.mT @ spread / (2 * dz)
 
 
 def _rowwise_jacobian(
