@@ -143,7 +143,7 @@ def marginal_filter(
 def _linearised(
     policy: Callable[..., torch.Tensor], z: torch.Tensor, outer: torch.Tensor, *args: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Moments of ``π(z)``, ``z ~ N(z, outer)``, with the policy linearised at ``z``."""
+    """Moments of ``π`` over ``N(z, outer)``, with the policy linearised at the mean ``z``."""
     out, jac = _rowwise_jacobian(policy, z, *args)
     cross = outer @ jac.mT
     return out, cross, jac @ cross
@@ -152,8 +152,9 @@ def _linearised(
 def _cubature(
     policy: Callable[..., torch.Tensor], z: torch.Tensor, outer: torch.Tensor, *args: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Moments of ``π(z)``, ``z ~ N(z, outer)``: mean, Cov(z, π) and Cov(π) by the spherical
-    cubature rule (2 dz points at ±√dz standard deviations).
+    """Moments of ``π`` over ``N(z, outer)``: the mean, the covariance with the latent and the
+    covariance of ``π``, by the spherical cubature rule (2 dz points at ±√dz standard
+    deviations).
 
     Unlike the linearisation, it sees how the policy bends within the belief's spread: near
     the target the steering flips with the believed bearing, and a tangent at the mean
