@@ -243,13 +243,22 @@ def test_marginal_recovers_the_agents_belief_better_than_the_hard_e_step():
     assert errors["marginal"] < 0.85 * errors["map"], errors  # measured: 0.075 vs 0.101
 
 
-def test_unknown_method_and_a_discrete_action_model_are_refused():
+def test_unknown_method_or_moment_rule_and_a_discrete_action_model_are_refused():
     from irc_torchrl.modules.likelihood import BoltzmannActionModel
     from irc_torchrl.objectives.inverse import InverseRationalLoss
 
     action_model = CensoredGaussianActionModel(_Policy(), -torch.ones(2), torch.ones(2))
     with pytest.raises(ValueError, match="method: expected one of"):
         InverseRationalLoss(MODEL, action_model, method="laplace")
+    with pytest.raises(ValueError, match="moments: expected one of"):
+        InverseRationalLoss(MODEL, action_model, method="marginal", moments="unscented")
+    theta = SPACE.default().double().expand(1, -1)
+    zeros = torch.zeros(1, T, 5, dtype=torch.float64)
+    with pytest.raises(ValueError, match="moments: expected one of"):
+        marginal_filter(
+            MODEL, action_model, theta, torch.zeros(1, 2), zeros, zeros[..., :2],
+            torch.ones(1, 2), theta, moments="unscented",
+        )  # fmt: skip
     with pytest.raises(ValueError, match="'marginal' needs a continuous action model"):
         InverseRationalLoss(MODEL, BoltzmannActionModel(torch.nn.Linear(23, 3)), method="marginal")
 

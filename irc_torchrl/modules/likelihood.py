@@ -23,6 +23,11 @@ def _scored_sum(logp: torch.Tensor, scored: torch.Tensor | None) -> torch.Tensor
     return logp.sum(-1)
 
 
+def _standard_log_density(z: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """``log N(x; m, std²)`` from the standardised ``z = (x − m) / std``."""
+    return -0.5 * z**2 - std.log() - 0.5 * math.log(2 * math.pi)
+
+
 def gaussian_log_prob_of_draw(
     mean: torch.Tensor,
     var: torch.Tensor,
@@ -128,7 +133,7 @@ class CensoredGaussianActionModel(nn.Module):
         std = nuisance.exp()
         low, high = self.low.to(features.dtype), self.high.to(features.dtype)
         z = (action - mean) / std
-        density = -0.5 * z**2 - std.log() - 0.5 * math.log(2 * math.pi)
+        density = _standard_log_density(z, std)
         below = torch.special.log_ndtr((low - mean) / std)
         above = torch.special.log_ndtr((mean - high) / std)
         lower, upper = action <= low + self.atol, action >= high - self.atol
@@ -209,7 +214,7 @@ class CensoredGaussianActionModel(nn.Module):
             a = action[..., i]
             # interior: a Gaussian observation
             z = (a - m) / std
-            interior = -0.5 * z**2 - std.log() - 0.5 * math.log(2 * math.pi)
+            interior = _standard_log_density(z, std)
             # clipped: P(u beyond the bound), and the moments of u given that it is beyond
             upper = a >= high[i] - self.atol
             lower = a <= low[i] + self.atol

@@ -91,6 +91,8 @@ def marginal_filter(
     mean, cov = model.initial_belief(state[:, 0], target, theta)
     outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
 
+    if moments not in MOMENT_RULES:
+        raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
     predict = _cubature if moments == "cubature" else _linearised
 
     def policy(z, p, tg, step, th):
