@@ -38,7 +38,7 @@ def _task(name: str):
     action_model = CensoredGaussianActionModel(
         FeaturePolicy(actor), spec.space.low, spec.space.high
     )
-    settings = {"n_screen": 16, "n_starts": 2, "curvature": "fisher"}
+    settings = {"n_screen": 16, "n_starts": 2, "curvature": "bfgs"}
     return model, motor_noise_policy(actor, spec, 0.1), action_model, settings
 
 

@@ -120,7 +120,7 @@ def main() -> None:
     )
     loss = InverseRationalLoss(model, action_model, theta_space=space, method=args.method)
     held = trials.select("state", "action", "target", "mask", "task_theta").unsqueeze(0)
-    result = fit_theta(loss, held, n_starts=2, n_screen=16, curvature="fisher", seed=args.seed)
+    result = fit_theta(loss, held, n_starts=2, n_screen=16, curvature="bfgs", seed=args.seed)
 
     # 4. θ̂ with 95% intervals, and the agent's belief under θ̂
     fit = result.agent(0)

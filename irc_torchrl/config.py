@@ -62,7 +62,8 @@ class FitConfig:
     n_screen: int = 64
     n_starts: int = 4
     max_iter: int = 40
-    #: "hessian" (exact Newton) or "fisher" (Fisher scoring far from θ̂, Newton near it)
+    #: "hessian" (exact Newton), "fisher" (Fisher scoring far from θ̂, Newton near it) or
+    #: "bfgs" (Fisher scoring far from θ̂, BFGS near it: no second derivatives until θ̂)
     curvature: str = "hessian"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
     covariance: str = "hessian"
@@ -125,6 +126,8 @@ class RecordingFitConfig:
     max_iter: int = 40
     #: the motor-noise std the fit starts from (a nuisance parameter, fitted beside θ)
     motor_noise: float = 0.1
+    #: how the iterations measure curvature (see ``fit.curvature`` of ``irc recover``)
+    curvature: str = "bfgs"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
     covariance: str = "hessian"
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
@@ -150,6 +153,7 @@ class RecordingFitConfig:
                 f"config: n_starts={self.n_starts} exceeds n_screen={self.n_screen}; "
                 "the starts are the best of the screened draws"
             )
+        _one_of("curvature", self.curvature, CURVATURES)
         _one_of("covariance", self.covariance, COVARIANCES)
         return self
 

@@ -41,7 +41,7 @@ def test_overrides_reach_nested_fields_with_types():
         ("nonsense=1", "unknown key 'nonsense'"),
         ("agents.n_agents=many", "agents.n_agents='many' is not a valid int"),
         ("agents.world=elsewhere", "agents.world must be 'known' or 'shared'"),
-        ("fit.curvature=newton", r"fit.curvature must be one of \('hessian', 'fisher'\)"),
+        ("fit.curvature=newton", r"fit.curvature must be one of \('hessian', 'fisher', 'bfgs'\)"),
         ("fit.covariance=robust", r"fit.covariance must be one of \('hessian', 'sandwich'\)"),
         ("seed", "must look like key=value"),
     ],

@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy import stats
 
-from irc_torchrl.algorithms.fit import _screen_starts, fit_theta
+from irc_torchrl.algorithms.fit import _bfgs_update, _screen_starts, fit_theta
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
 from irc_torchrl.envs.firefly1d import STOP
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -387,3 +387,41 @@ def test_a_start_competes_with_the_screened_draws(firefly1d_model, trained_q, sp
     pairs = _screen_starts(loss, trials, 3, 2, seed=0, starts=theta_true).view(2, 2, -1)
     torch.testing.assert_close(pairs[:, 0, :k], truth)  # the most likely first
     assert not torch.equal(pairs[:, 1, :k], truth)
+
+
+def test_bfgs_update_meets_the_secant_equation_and_stays_positive_definite():
+    """``_bfgs_update``: the new curvature maps the step onto the gradient change (the secant
+    equation) where the step saw positive curvature, and stays SPD where it did not (Powell)."""
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(2, 4, 4, generator=gen, dtype=torch.float64)
+    h = a @ a.mT + torch.eye(4, dtype=torch.float64)
+    s = torch.randn(2, 4, generator=gen, dtype=torch.float64)
+    y = (h @ s.unsqueeze(-1)).squeeze(-1) * 1.5  # positive curvature along s
+    y[1] = -y[1]  # negative curvature along the second row's step
+    updated = _bfgs_update(h, s, y)
+    torch.testing.assert_close((updated[0] @ s[0]), y[0])
+    torch.testing.assert_close(updated, updated.mT)
+    assert (torch.linalg.eigvalsh(updated) > 0).all()
+    hs = h[1] @ s[1]  # Powell: the curvature along s shrinks to 0.2 of the old one
+    torch.testing.assert_close(s[1] @ updated[1] @ s[1], 0.2 * (s[1] @ hs))
+
+
+def test_bfgs_reaches_the_newton_fit_with_second_derivatives_only_at_the_end(
+    firefly1d_model, trained_q, space
+):
+    """``curvature="bfgs"`` (Fisher scoring, then BFGS) ends where exact Newton does: the same
+    maximum (log L within 1e-3 nats, θ̂ within 1e-3 in unconstrained units) and intervals."""
+    _, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1)
+    loss = make_loss(firefly1d_model, trained_q, 6)
+    newton = fit_theta(loss, trials, seed=0)
+    bfgs = fit_theta(loss, trials, seed=0, curvature="bfgs")
+    assert newton.converged.all() and bfgs.converged.all()
+    torch.testing.assert_close(bfgs.log_likelihood, newton.log_likelihood, rtol=0, atol=1e-3)
+    free = space.free_mask
+    torch.testing.assert_close(
+        space.to_unconstrained(bfgs.theta_hat)[:, free],
+        space.to_unconstrained(newton.theta_hat)[:, free],
+        rtol=0,
+        atol=1e-3,
+    )
+    torch.testing.assert_close(bfgs.intervals.std, newton.intervals.std, rtol=1e-2, atol=0)

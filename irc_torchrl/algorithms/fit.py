@@ -6,8 +6,10 @@ gradient and a curvature: the exact Hessian (``curvature="hessian"``: one double
 per parameter), or Fisher scoring (``"fisher"``: the outer product of per-trial scores of data
 drawn from the model along the recorded trials, from the same single backward pass as the
 gradient; positive semi-definite and, like Gauss–Newton, reliable far from θ̂ where the Hessian
-is indefinite). Rows converge at their own pace. The exact Hessian at θ̂, the observed Fisher
-information, gives the intervals either way.
+is indefinite), handing over near θ̂ to the exact Hessian (``"fisher"``) or to BFGS updates of
+the last Fisher matrix from the gradients alone (``"bfgs"``: no second derivatives until the
+intervals, the cheapest where a Hessian costs many gradients). Rows converge at their own pace.
+The exact Hessian at θ̂, the observed Fisher information, gives the intervals in every case.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from irc_torchrl.objectives.inverse import InverseRationalLoss
 __all__ = ["COVARIANCES", "CURVATURES", "FitResult", "fit_theta"]
 
 #: how the iterations measure curvature (the intervals always use the exact Hessian at θ̂)
-CURVATURES = ("hessian", "fisher")
+CURVATURES = ("hessian", "fisher", "bfgs")
 #: how ``fit_theta`` turns curvature into intervals: the inverse observed information, or the
 #: sandwich ``H⁻¹ (Σ sᵢ sᵢᵀ) H⁻¹`` over trials' scores (robust to an approximate likelihood)
 COVARIANCES = ("hessian", "sandwich")
@@ -38,6 +40,8 @@ MAX_STEP = 1.5
 BOUND = 6.0
 #: iterations without a gain of ``tol`` after which a Newton row has converged
 IDLE = 4
+#: rows (agent, candidate pairs) scored together when screening starts
+SCREEN_ROWS = 16
 #: Fisher scoring hands a row to Newton's method once it promises or gains less than this (nats)
 SWITCH = 1.0
 
@@ -145,19 +149,33 @@ def fit_theta(
     params = params.to(device)
     draws = torch.Generator().manual_seed(seed)
 
-    def derivatives(p: torch.Tensor, data: TensorDictBase, exact: torch.Tensor):
-        """Value, gradient and curvature of rows ``p``: the exact Hessian where ``exact``."""
+    def evaluate(p: torch.Tensor, data: TensorDictBase, with_grad: torch.Tensor):
+        """Values of rows ``p`` and, where ``with_grad``, their gradients in the same pass
+        (NaN elsewhere)."""
+        value, grad = p.new_empty(len(p)), torch.full_like(p, torch.nan)
+        if (~with_grad).any():
+            with torch.no_grad():
+                value[~with_grad] = nll(p[~with_grad], data[~with_grad])
+        if with_grad.any():
+            ll, score, _ = _trial_scores(loss, k, p[with_grad], data[with_grad])
+            value[with_grad], grad[with_grad] = -ll.sum(1), -score.sum(1)
+        return value, grad
+
+    def derivatives(p: torch.Tensor, data: TensorDictBase, near: torch.Tensor):
+        """Value, gradient and curvature of rows ``p``: Fisher scoring far from θ̂; near it the
+        exact Hessian, or with ``"bfgs"`` none (NaN: the iteration updates the last one)."""
         n, m = p.shape
-        out = (p.new_empty(n), p.new_empty(n, m), p.new_empty(n, m, m))
-        for rows_, hess in ((exact, True), (~exact, False)):
+        out = (p.new_empty(n), p.new_empty(n, m), p.new_full((n, m, m), torch.nan))
+        for rows_, kind in ((near, "near"), (~near, "fisher")):
             if rows_.any():
                 q, d = p[rows_], data[rows_]
-                parts = (
-                    batched_hessian(lambda x, d=d: nll(x, d), q)
-                    if hess
-                    else _fisher_scoring(loss, k, q, d, draws)
-                )
-                for o, v in zip(out, parts, strict=True):
+                if kind == "fisher":
+                    parts = _fisher_scoring(loss, k, q, d, draws)
+                elif curvature == "bfgs":
+                    parts = evaluate(q, d, torch.ones_like(rows_[rows_]))
+                else:
+                    parts = batched_hessian(lambda x, d=d: nll(x, d), q)
+                for o, v in zip(out, parts, strict=False):
                     o[rows_] = v
         return out
 
@@ -187,8 +205,10 @@ def fit_theta(
         step, d = _damped_step(_absolute(h), g, d)
         # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
         step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
-        with torch.no_grad():
-            gain = value[active] - nll(params[active] + step, rows[active])
+        # BFGS rows need the gradient wherever a step lands: it comes with the trial's value
+        quasi = near[active] & (curvature == "bfgs")
+        trial_value, trial_grad = evaluate(params[active] + step, rows[active], quasi)
+        gain = value[active] - trial_value
         accept = (gain > 1e-12) & ~converged[active]
         # Fisher scoring has done its part once it promises or makes little progress
         switch = ~near[active] & ((decrement < SWITCH) | (accept & (gain < SWITCH)))
@@ -203,11 +223,29 @@ def fit_theta(
         idle[active] = torch.where(accept & (gain >= tol), 0, idle[active] + 1)
         params[active[accept]] += step[accept]
         near[active[switch]] = True
-        refresh = active[accept | switch]
+        if curvature == "bfgs":
+            landed = accept & quasi
+            moved = active[landed]
+            hessian[moved] = _bfgs_update(
+                hessian[moved], step[landed], trial_grad[landed] - grad[moved]
+            )
+            value[moved], grad[moved] = trial_value[landed], trial_grad[landed]
+            # rows leaving Fisher scoring start BFGS from their last Fisher matrix
+            refresh, fisher_step = active[accept & ~quasi], step[accept & ~quasi]
+            previous = grad[refresh]
+        else:
+            refresh = active[accept | switch]
         if len(refresh):
-            value[refresh], grad[refresh], hessian[refresh] = derivatives(
+            value[refresh], grad[refresh], fresh = derivatives(
                 params[refresh], rows[refresh], near[refresh]
             )
+            if curvature == "bfgs":
+                fresh = torch.where(
+                    fresh.isnan(),
+                    _bfgs_update(hessian[refresh], fisher_step, grad[refresh] - previous),
+                    fresh,
+                )
+            hessian[refresh] = fresh
         if progress is not None:
             progress(iterations, max_iter)
         if (converged | stalled).all():
@@ -216,9 +254,16 @@ def fit_theta(
     pick = torch.arange(n_agents, device=device) * n_starts + best
     theta_free_hat = params[pick, :k]
     theta_hat = loss.theta(theta_free_hat).detach()
-    # the observed information at θ̂ (rows that ended on Fisher scoring get it computed now)
-    _, _, information = derivatives(params[pick], trials, torch.ones_like(near[pick]))
-    information = torch.where(near[pick, None, None], hessian[pick], information)
+    # the observed information at θ̂ (rows that did not step with it get it computed now)
+    information = hessian[pick]
+    missing = ~near[pick] | (curvature == "bfgs")
+    if missing.any():
+        _, _, information[missing] = batched_hessian(
+            lambda x: nll(x, trials[missing]), params[pick][missing]
+        )
+    # θ̂ is a maximum only where the observed information there is positive definite (BFGS's
+    # curvature always is)
+    top = torch.isfinite(_newton_decrement(*_pin_bounds(params[pick], information, grad[pick], k)))
     meat = None
     if covariance == "sandwich":
         _, score, _ = _trial_scores(loss, k, params[pick], trials)
@@ -229,7 +274,7 @@ def fit_theta(
         nuisance=params[pick, k:],
         log_likelihood=-value[pick],
         intervals=intervals,
-        converged=converged[pick],
+        converged=converged[pick] & top,
         iterations=iterations,
         names=space.names,
     )
@@ -262,6 +307,24 @@ def _absolute(h: torch.Tensor) -> torch.Tensor:
     """
     eigval, eigvec = torch.linalg.eigh(h)
     return (eigvec * eigval.abs().unsqueeze(-2)) @ eigvec.mT
+
+
+def _bfgs_update(h: torch.Tensor, s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """BFGS update of curvatures ``h`` ``[n, p, p]`` after steps ``s`` changed gradients by ``y``.
+
+    Powell's damping moves ``y`` toward ``h s`` where ``sᵀy < 0.2 sᵀhs`` (a step across a
+    region of negative curvature), so the update stays positive definite.
+    """
+    hs = (h @ s.unsqueeze(-1)).squeeze(-1)
+    shs = (s * hs).sum(-1, keepdim=True)
+    sy = (s * y).sum(-1, keepdim=True)
+    mix = torch.where(sy >= 0.2 * shs, torch.ones_like(sy), 0.8 * shs / (shs - sy))
+    r = mix * y + (1 - mix) * hs
+    return (
+        h
+        - hs.unsqueeze(-1) * hs.unsqueeze(-2) / shs.unsqueeze(-1)
+        + r.unsqueeze(-1) * r.unsqueeze(-2) / (s * r).sum(-1)[:, None, None]
+    )
 
 
 def _newton_decrement(h: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
@@ -367,11 +430,22 @@ def _screen_starts(
         own = space.to_unconstrained(starts.cpu())[:, free].to(device).unsqueeze(1)
         candidates = torch.cat([candidates, own], 1)
     nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1).to(device)
+    # every (agent, candidate) pair is a row; rows are scored a chunk at a time
+    n_candidates = candidates.shape[1]
+    pairs = (
+        candidates.reshape(-1, candidates.shape[-1]),
+        nuisance.repeat_interleave(n_candidates, 0),
+        trials.unsqueeze(1)
+        .expand(n_agents, n_candidates, *trials.shape[1:])
+        .reshape(-1, *trials.shape[1:]),
+    )
     with torch.no_grad():
-        scores = torch.stack(
-            [loss.log_likelihood(loss.theta(u), nuisance, trials) for u in candidates.unbind(1)],
-            1,
-        )
+        scores = torch.cat(
+            [
+                loss.log_likelihood(loss.theta(u), v, d)
+                for u, v, d in zip(*(x.split(SCREEN_ROWS) for x in pairs), strict=True)
+            ]
+        ).view(n_agents, n_candidates)
     n = min(n_starts, candidates.shape[1])
     best = scores.topk(n, dim=1).indices  # [A, n]
     chosen = candidates.gather(1, best.unsqueeze(-1).expand(-1, -1, candidates.shape[-1]))

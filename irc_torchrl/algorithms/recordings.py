@@ -354,7 +354,7 @@ def _fit_groups(
                     n_screen=config.n_screen,
                     max_iter=config.max_iter,
                     seed=seed,
-                    curvature="fisher",
+                    curvature=config.curvature,
                     covariance=config.covariance,
                     starts=starts,
                     progress=lambda i, n: bar.update(1),
