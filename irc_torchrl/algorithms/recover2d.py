@@ -65,8 +65,8 @@ class Recovery2DConfig:
     n_trials: int = 100
     #: the agents' motor-noise standard deviation (fitted as a nuisance, per action dimension)
     motor_noise: float = 0.1
-    #: comma-separated estimators; when both run, ``marginal`` starts from the most likely
-    #: (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
+    #: comma-separated estimators; when both run, ``marginal`` starts from the ``fit.n_starts``
+    #: most likely (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
     methods: str = "map,marginal"
     fit: FitConfig = field(
         default_factory=lambda: FitConfig(n_screen=16, n_starts=2, curvature="bfgs")
@@ -182,13 +182,13 @@ def recover_firefly2d(
     }
     for method in config.method_list:
         loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method=method)
-        # after map, the marginal runs from the most likely of map's θ̂ and the screened draws
+        # after map, map's θ̂ joins the marginal's screened draws
         starts = fits["map"].theta_hat if "map" in fits else None
         begin = time.perf_counter()
         fits[method] = result = fit_theta(
             loss,
             held,
-            n_starts=1 if starts is not None else config.fit.n_starts,
+            n_starts=config.fit.n_starts,
             n_screen=config.fit.n_screen,
             max_iter=config.fit.max_iter,
             curvature=config.fit.curvature,
