@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy import stats
 
-from irc_torchrl.algorithms.fit import _bfgs_update, _screen_starts, fit_theta
+from irc_torchrl.algorithms.fit import _behind_best, _bfgs_update, _screen_starts, fit_theta
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
 from irc_torchrl.envs.firefly1d import STOP
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -425,3 +425,12 @@ def test_bfgs_reaches_the_newton_fit_with_second_derivatives_only_at_the_end(
         atol=1e-3,
     )
     torch.testing.assert_close(bfgs.intervals.std, newton.intervals.std, rtol=1e-2, atol=0)
+
+
+def test_a_start_is_measured_against_its_own_agents_converged_maximum():
+    """``_behind_best``: the gap that lets ``fit_theta`` abandon a start which cannot overtake
+    its agent's converged maximum (the batch would otherwise wait on it)."""
+    value = torch.tensor([5.0, 1.0, 3.0, 4.0], dtype=torch.float64)  # two agents, two starts
+    converged = torch.tensor([False, True, False, False])
+    behind = _behind_best(value, converged, 2)
+    assert behind.tolist() == [4.0, 0.0, -math.inf, -math.inf]

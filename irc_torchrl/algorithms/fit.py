@@ -202,6 +202,10 @@ def fit_theta(
         # where the curvature is not negative definite is a stall, not θ̂
         flat_top = (idle[active] >= IDLE) & torch.isfinite(decrement)
         converged[active] = near[active] & ((decrement < tol) | flat_top)
+        # a start below its agent's converged maximum by more than its own model promises to
+        # gain is abandoned: it cannot overtake, and the batch would wait for it
+        behind = _behind_best(value, converged, n_starts)[active]
+        stalled[active] |= ~converged[active] & (behind > decrement.clamp_min(SWITCH))
         step, d = _damped_step(_absolute(h), g, d)
         # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
         step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
@@ -219,7 +223,7 @@ def fit_theta(
         damping[active] = torch.where(
             ~accept, d * 8, torch.where(ratio > 0.75, d / 3, torch.where(ratio < 0.25, d * 2, d))
         ).clamp(1e-9, 1e9)
-        stalled[active] = damping[active] >= 1e9
+        stalled[active] |= damping[active] >= 1e9
         idle[active] = torch.where(accept & (gain >= tol), 0, idle[active] + 1)
         params[active[accept]] += step[accept]
         near[active[switch]] = True
@@ -263,7 +267,9 @@ def fit_theta(
         )
     # θ̂ is a maximum only where the observed information there is positive definite (BFGS's
     # curvature always is)
-    top = torch.isfinite(_newton_decrement(*_pin_bounds(params[pick], information, grad[pick], k)))
+    maximum = torch.isfinite(
+        _newton_decrement(*_pin_bounds(params[pick], information, grad[pick], k))
+    )
     meat = None
     if covariance == "sandwich":
         _, score, _ = _trial_scores(loss, k, params[pick], trials)
@@ -274,10 +280,17 @@ def fit_theta(
         nuisance=params[pick, k:],
         log_likelihood=-value[pick],
         intervals=intervals,
-        converged=converged[pick] & top,
+        converged=converged[pick] & maximum,
         iterations=iterations,
         names=space.names,
     )
+
+
+def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) -> torch.Tensor:
+    """How far each row's negative log-likelihood lies above the best converged row of its
+    agent (rows agent-major, ``n_starts`` per agent; ``-inf`` where the agent has none)."""
+    reached = torch.where(converged, value, torch.inf).view(-1, n_starts).amin(1)
+    return value - reached.repeat_interleave(n_starts)
 
 
 def _pin_bounds(
