@@ -42,6 +42,10 @@ BOUND = 6.0
 IDLE = 4
 #: rows (agent, candidate pairs) scored together when screening starts
 SCREEN_ROWS = 16
+#: rows × trials differentiated at once: the exact Hessian's double backward holds ~7 MB per 2D
+#: trial of 60 steps, a gradient ~0.7 MB, so 40 agents × 100 trials are taken in pieces
+HESSIAN_TRIALS = 400
+GRAD_TRIALS = 4000
 #: Fisher scoring hands a row to Newton's method once it promises or gains less than this (nats)
 SWITCH = 1.0
 
@@ -149,6 +153,12 @@ def fit_theta(
     params = params.to(device)
     draws = torch.Generator().manual_seed(seed)
 
+    def hessian_of_nll(p: torch.Tensor, data: TensorDictBase):
+        return batched_hessian(lambda x: nll(x, data), p)
+
+    def scores(p: torch.Tensor, data: TensorDictBase):
+        return _trial_scores(loss, k, p, data)
+
     def evaluate(p: torch.Tensor, data: TensorDictBase, with_grad: torch.Tensor):
         """Values of rows ``p`` and, where ``with_grad``, their gradients in the same pass
         (NaN elsewhere)."""
@@ -157,7 +167,7 @@ def fit_theta(
             with torch.no_grad():
                 value[~with_grad] = nll(p[~with_grad], data[~with_grad])
         if with_grad.any():
-            ll, score, _ = _trial_scores(loss, k, p[with_grad], data[with_grad])
+            ll, score, _ = _by_rows(scores, p[with_grad], data[with_grad], GRAD_TRIALS)
             value[with_grad], grad[with_grad] = -ll.sum(1), -score.sum(1)
         return value, grad
 
@@ -170,11 +180,13 @@ def fit_theta(
             if rows_.any():
                 q, d = p[rows_], data[rows_]
                 if kind == "fisher":
-                    parts = _fisher_scoring(loss, k, q, d, draws)
+                    parts = _by_rows(
+                        lambda q_, d_: _fisher_scoring(loss, k, q_, d_, draws), q, d, GRAD_TRIALS
+                    )
                 elif curvature == "bfgs":
                     parts = evaluate(q, d, torch.ones_like(rows_[rows_]))
                 else:
-                    parts = batched_hessian(lambda x, d=d: nll(x, d), q)
+                    parts = _by_rows(hessian_of_nll, q, d, HESSIAN_TRIALS)
                 for o, v in zip(out, parts, strict=False):
                     o[rows_] = v
         return out
@@ -262,8 +274,8 @@ def fit_theta(
     information = hessian[pick]
     missing = ~near[pick] | (curvature == "bfgs")
     if missing.any():
-        _, _, information[missing] = batched_hessian(
-            lambda x: nll(x, trials[missing]), params[pick][missing]
+        _, _, information[missing] = _by_rows(
+            hessian_of_nll, params[pick][missing], trials[missing], HESSIAN_TRIALS
         )
     # θ̂ is a maximum only where the observed information there is positive definite (BFGS's
     # curvature always is)
@@ -272,7 +284,7 @@ def fit_theta(
     )
     meat = None
     if covariance == "sandwich":
-        _, score, _ = _trial_scores(loss, k, params[pick], trials)
+        _, score, _ = _by_rows(scores, params[pick], trials, GRAD_TRIALS)
         meat = score.mT @ score
     intervals = fisher_intervals(space, theta_hat, theta_free_hat, information, meat)
     return FitResult(
@@ -284,6 +296,14 @@ def fit_theta(
         iterations=iterations,
         names=space.names,
     )
+
+
+def _by_rows(fn: Callable, params: torch.Tensor, trials: TensorDictBase, budget: int) -> tuple:
+    """``fn(params, trials)`` over chunks of rows holding at most ``budget`` trials (at least
+    one row), its outputs (tensors or ``None``) joined along the rows."""
+    size = max(1, budget // max(1, trials.shape[1]))
+    parts = [fn(p, d) for p, d in zip(params.split(size), trials.split(size), strict=True)]
+    return tuple(None if x[0] is None else torch.cat(x) for x in zip(*parts, strict=True))
 
 
 def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) -> torch.Tensor:
