@@ -8,6 +8,7 @@ import pytest
 import torch
 from scipy import stats
 
+import irc_torchrl.algorithms.fit as fit_module
 from irc_torchrl.algorithms.fit import _behind_best, _bfgs_update, _screen_starts, fit_theta
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
 from irc_torchrl.envs.firefly1d import STOP
@@ -434,3 +435,20 @@ def test_a_start_is_measured_against_its_own_agents_converged_maximum():
     converged = torch.tensor([False, True, False, False])
     behind = _behind_best(value, converged, 2)
     assert behind.tolist() == [4.0, 0.0, -math.inf, -math.inf]
+
+
+def test_a_fit_taken_in_pieces_equals_the_fit_taken_whole(
+    firefly1d_model, trained_q, space, monkeypatch
+):
+    """Rows are differentiated in chunks that bound memory (``HESSIAN_TRIALS``,
+    ``GRAD_TRIALS``); one row per chunk must give the same fit as all rows at once."""
+    _, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1, n_agents=2)
+    loss = make_loss(firefly1d_model, trained_q, 2)
+    for curvature in ("hessian", "fisher"):
+        whole = fit_theta(loss, trials, seed=0, n_screen=8, n_starts=2, curvature=curvature)
+        with monkeypatch.context() as patch:
+            patch.setattr(fit_module, "HESSIAN_TRIALS", 1)
+            patch.setattr(fit_module, "GRAD_TRIALS", 1)
+            pieces = fit_theta(loss, trials, seed=0, n_screen=8, n_starts=2, curvature=curvature)
+        torch.testing.assert_close(pieces.theta_hat, whole.theta_hat)
+        torch.testing.assert_close(pieces.intervals.std, whole.intervals.std)
