@@ -123,7 +123,8 @@ class RecordingFitConfig:
     #: prior draws scored by likelihood alone; Newton starts from the best ``n_starts``
     n_screen: int = 16
     n_starts: int = 2
-    max_iter: int = 40
+    #: BFGS iterations are cheap; slow climbs through a rugged likelihood need many of them
+    max_iter: int = 80
     #: the motor-noise std the fit starts from (a nuisance parameter, fitted beside θ)
     motor_noise: float = 0.1
     #: how the iterations measure curvature (see ``fit.curvature`` of ``irc recover``)

@@ -38,7 +38,8 @@ MAX_STEP = 1.5
 #: the unconstrained coordinate at which a free θ counts as on its bound (θ within
 #: ``1/(1+e^BOUND)`` ≈ 0.25% of its range from the bound)
 BOUND = 6.0
-#: iterations without a gain of ``tol`` after which a Newton row has converged
+#: iterations without a gain of ``tol`` after which a row whose model promises less than
+#: ``SWITCH`` nats has converged (a flat top, e.g. θ̂ on a bound)
 IDLE = 4
 #: rows (agent, candidate pairs) scored together when screening starts
 SCREEN_ROWS = 16
@@ -210,9 +211,10 @@ def fit_theta(
         # the undamped Newton decrement: the decrease a full step promises (∞ where the
         # curvature is not positive definite); tiny means θ̂ is reached
         decrement = _newton_decrement(h, g)
-        # idle on a flat top counts only where the top is a maximum (finite decrement): idle
-        # where the curvature is not negative definite is a stall, not θ̂
-        flat_top = (idle[active] >= IDLE) & torch.isfinite(decrement)
+        # idle counts as a flat top only where the model promises little (a small, finite
+        # decrement): idle where the curvature is indefinite, or where steps keep failing
+        # while the model promises much, is not θ̂
+        flat_top = (idle[active] >= IDLE) & (decrement < SWITCH)
         converged[active] = near[active] & ((decrement < tol) | flat_top)
         # a start below its agent's converged maximum by more than its own model promises to
         # gain is abandoned: it cannot overtake, and the batch would wait for it

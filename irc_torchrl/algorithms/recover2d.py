@@ -69,7 +69,7 @@ class Recovery2DConfig:
     #: most likely (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
     methods: str = "map,marginal"
     fit: FitConfig = field(
-        default_factory=lambda: FitConfig(n_screen=16, n_starts=2, curvature="bfgs")
+        default_factory=lambda: FitConfig(n_screen=16, n_starts=2, max_iter=80, curvature="bfgs")
     )
 
     def validate(self) -> Recovery2DConfig:
