@@ -242,28 +242,26 @@ def fit_theta(
         params[active[accept]] += step[accept]
         near[active[switch]] = True
         if curvature == "bfgs":
+            moved = active[accept]
+            before_grad, before_hessian = grad[moved], hessian[moved]
+            # a BFGS row's gradient came with its trial value; the others need a pass
             landed = accept & quasi
-            moved = active[landed]
-            hessian[moved] = _bfgs_update(
-                hessian[moved], step[landed], trial_grad[landed] - grad[moved]
-            )
-            value[moved], grad[moved] = trial_value[landed], trial_grad[landed]
-            # rows leaving Fisher scoring start BFGS from their last Fisher matrix
-            refresh, fisher_step = active[accept & ~quasi], step[accept & ~quasi]
-            previous = grad[refresh]
+            value[active[landed]], grad[active[landed]] = trial_value[landed], trial_grad[landed]
+            refresh = active[accept & ~quasi]
         else:
             refresh = active[accept | switch]
         if len(refresh):
-            value[refresh], grad[refresh], fresh = derivatives(
+            value[refresh], grad[refresh], hessian[refresh] = derivatives(
                 params[refresh], rows[refresh], near[refresh]
             )
-            if curvature == "bfgs":
-                fresh = torch.where(
-                    fresh.isnan(),
-                    _bfgs_update(hessian[refresh], fisher_step, grad[refresh] - previous),
-                    fresh,
-                )
-            hessian[refresh] = fresh
+        if curvature == "bfgs":
+            # rows near θ̂ update their last curvature (a Fisher matrix for rows switching now)
+            update = near[moved]
+            hessian[moved[update]] = _bfgs_update(
+                before_hessian[update],
+                step[accept][update],
+                grad[moved[update]] - before_grad[update],
+            )
         if progress is not None:
             progress(iterations, max_iter)
         if (converged | stalled).all():

@@ -72,6 +72,8 @@ def marginal_filter(
         per step the log-probability of the drawn action ``[*B, T]`` (zeros without
         ``generator``).
     """
+    if moments not in MOMENT_RULES:
+        raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
     batch, steps = state.shape[:-2], state.shape[-2]
     flat = batch.numel()
     ds = model.state_dim
@@ -90,9 +92,6 @@ def marginal_filter(
     state, action = state.reshape(flat, steps, ds)[order], action.reshape(flat, steps, -1)[order]
     mean, cov = model.initial_belief(state[:, 0], target, theta)
     outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
-
-    if moments not in MOMENT_RULES:
-        raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
     predict = _cubature if moments == "cubature" else _linearised
 
     def policy(z, p, tg, step, th):
