@@ -157,6 +157,20 @@ def test_units_are_converted_to_the_model_units(tmp_path, model2d, trials2d):
     _assert_same(read_trials(tmp_path / "lab.csv", model2d, units=units), trials2d)
 
 
+def test_a_heading_wrapped_into_plus_minus_pi_is_unwrapped(tmp_path, model2d, trials2d):
+    """An arena-frame recording whose heading comes from atan2 (wrapped at ±π) reads as the
+    continuous heading the model steps; positions and targets are kept as recorded."""
+    columns = trials_to_columns(trials2d, model2d)
+    heading = columns["heading"].astype(np.float64) + math.pi - 0.02  # facing -x: crosses ±π
+    columns["heading"] = np.angle(np.exp(1j * heading))
+    assert (np.abs(np.diff(columns["heading"])) > math.pi).any()  # the file does wrap
+    _write_raw(columns, tmp_path / "arena.csv")
+    back = read_trials(tmp_path / "arena.csv", model2d)
+    expected = trials2d.clone()
+    expected["state"][..., 2] += math.pi - 0.02
+    _assert_same(back, expected)
+
+
 @pytest.mark.parametrize(
     "units, error, match",
     [

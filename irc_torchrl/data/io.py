@@ -24,7 +24,7 @@ from torchrl.data import Categorical
 
 from irc_torchrl.data.files import atomic_dir, atomic_path
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
-from irc_torchrl.data.units import convert_units
+from irc_torchrl.data.units import convert_units, unwrap_angles
 from irc_torchrl.data.validate import (
     THETA_PREFIX,
     Trial,
@@ -59,7 +59,8 @@ def read_trials(
         model: the task; its names and units define the columns (see the schema).
         time_column, trial_column: the names of the time (s) and trial columns.
         units: ``{column: unit}`` where the recording differs from the model's units,
-            e.g. ``{"x": "cm", "heading": "deg"}``.
+            e.g. ``{"x": "cm", "heading": "deg"}``. Angles wrapped into ``[-π, π]`` are
+            unwrapped (:func:`~irc_torchrl.data.units.unwrap_angles`).
         resample: put each trial on the model's time grid when the recording's median step
             differs from ``model.dt`` by more than 1% (a warning says so).
 
@@ -76,7 +77,10 @@ def read_trials(
     columns = reader(path, model, time_column, trial_column)
     check_columns(columns, model, source, time_column, trial_column)
     columns = convert_units(columns, units or {}, model, source, time_column)
-    trials = split_trials(columns, source, trial_column)
+    trials = [
+        (label, unwrap_angles(trial, model))
+        for label, trial in split_trials(columns, source, trial_column)
+    ]
     for label, trial in trials:
         check_trial(label, trial, model, source, time_column)
     trials = _on_model_grid(trials, model, source, time_column, trial_column, resample)

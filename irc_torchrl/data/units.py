@@ -14,7 +14,7 @@ import numpy as np
 
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["UNITS", "column_kinds", "convert_units"]
+__all__ = ["UNITS", "column_kinds", "convert_units", "unwrap_angles"]
 
 #: per kind of quantity (the model's unit), the known recording units and their factor to it
 UNITS: dict[str, dict[str, float]] = {
@@ -24,6 +24,10 @@ UNITS: dict[str, dict[str, float]] = {
     "rad/s": {"rad/s": 1.0, "deg/s": math.pi / 180},
     "s": {"s": 1.0, "ms": 0.001},
 }
+
+
+#: how far past ±π a wrapped angle may lie (round-off of the recording's export)
+_WRAP_SLACK = 1e-5
 
 
 def column_kinds(model: TaskModel, time_column: str = "time") -> dict[str, str]:
@@ -62,4 +66,29 @@ def convert_units(
             )
         if name in out:
             out[name] = np.asarray(out[name], dtype=np.float64) * table[unit]
+    return out
+
+
+def unwrap_angles(trial: Mapping[str, np.ndarray], model: TaskModel) -> dict[str, np.ndarray]:
+    """A copy of one trial whose angles, if wrapped into ``[-π, π]`` (e.g. by ``atan2``), are
+    made continuous, as the model's heading is.
+
+    A jump counts as a wrap only where the angle crosses ±π: both samples within ``[-π, π]``
+    on either side of it, and a change of less than π/2 once the 2π is taken off. Any other
+    jump is left for :func:`~irc_torchrl.data.validate.check_trial` to refuse (degrees read as
+    radians jump anywhere).
+    """
+    out = dict(trial)
+    for name, unit in zip(model.state_names, model.state_units, strict=True):
+        if unit != "rad" or name not in out:
+            continue
+        angle = np.asarray(out[name], dtype=np.float64)
+        before, after = angle[:-1], angle[1:]
+        jump = after - before
+        turn = jump - 2 * math.pi * np.round(jump / (2 * math.pi))
+        inside = np.maximum(np.abs(before), np.abs(after)) <= math.pi + _WRAP_SLACK
+        crosses = (before * after < 0) & (np.abs(jump) > math.pi)
+        wrap = inside & crosses & (np.abs(turn) < math.pi / 2)
+        if wrap.any():
+            out[name] = angle + np.concatenate([[0.0], np.cumsum(np.where(wrap, turn - jump, 0.0))])
     return out
