@@ -202,6 +202,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "settings: n_screen, n_starts, max_iter, motor_noise (initial), threads, "
         "curvature (bfgs, fisher or hessian: how the iterations measure curvature), "
         "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
+        "intervals (wald, or profile: where the profile likelihood falls 1.92 below its top), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
     )

@@ -20,7 +20,7 @@ from irc_torchrl.algorithms.ensemble import (
     EvaluationConfig,
     Firefly2DConfig,
 )
-from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES
+from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 
 if TYPE_CHECKING:  # recover2d imports this module
@@ -67,11 +67,14 @@ class FitConfig:
     curvature: str = "hessian"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
     covariance: str = "hessian"
+    #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
+    intervals: str = "wald"
 
     def validate(self) -> FitConfig:
         """Return ``self`` if the method names are known, else a one-line error naming them."""
         _one_of("fit.curvature", self.curvature, CURVATURES)
         _one_of("fit.covariance", self.covariance, COVARIANCES)
+        _one_of("fit.intervals", self.intervals, INTERVALS)
         return self
 
 
@@ -131,6 +134,8 @@ class RecordingFitConfig:
     curvature: str = "bfgs"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
     covariance: str = "hessian"
+    #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
+    intervals: str = "wald"
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)
@@ -156,6 +161,7 @@ class RecordingFitConfig:
             )
         _one_of("curvature", self.curvature, CURVATURES)
         _one_of("covariance", self.covariance, COVARIANCES)
+        _one_of("intervals", self.intervals, INTERVALS)
         return self
 
 

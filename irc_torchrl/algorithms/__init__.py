@@ -1,22 +1,35 @@
 """Plain functions that assemble the parts: Algorithm 1, agent simulation, Algorithm 2.
 
-The experiment runners (:mod:`~irc_torchrl.algorithms.demo`,
-:mod:`~irc_torchrl.algorithms.recovery`, :mod:`~irc_torchrl.algorithms.ensemble`) read the
-configuration classes and are imported from their modules.
+The experiment runners (:func:`~irc_torchrl.algorithms.demo.run_demo`,
+:func:`~irc_torchrl.algorithms.recovery.recover_agents`,
+:func:`~irc_torchrl.algorithms.recover2d.recover_firefly2d`) read the configuration classes of
+:mod:`irc_torchrl.config`, which imports this package, so they are imported from their modules.
 """
 
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
-from irc_torchrl.algorithms.fit import FitResult, fit_theta
+from irc_torchrl.algorithms.ensemble import (
+    critic_slices,
+    load_ensemble_critic,
+    load_ensemble_policy,
+    train_ensemble,
+)
+from irc_torchrl.algorithms.fit import FitResult, fit_theta, profile_intervals
 from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
-from irc_torchrl.algorithms.simulate import boltzmann_policy, simulate_agents
+from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 
 __all__ = [
     "FitResult",
     "QIterationConfig",
     "boltzmann_policy",
+    "critic_slices",
     "fit_theta",
     "greedy_returns",
+    "load_ensemble_critic",
+    "load_ensemble_policy",
+    "motor_noise_policy",
     "optimal_values",
+    "profile_intervals",
     "simulate_agents",
+    "train_ensemble",
     "train_factorised_q",
 ]

@@ -22,16 +22,19 @@ import torch
 from tensordict import TensorDictBase
 
 from irc_torchrl.data.trajectories import validate_trials
-from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
+from irc_torchrl.objectives.fisher import Z95, Intervals, batched_hessian, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-__all__ = ["COVARIANCES", "CURVATURES", "FitResult", "fit_theta"]
+__all__ = ["COVARIANCES", "CURVATURES", "INTERVALS", "FitResult", "fit_theta", "profile_intervals"]
 
 #: how the iterations measure curvature (the intervals always use the exact Hessian at θ̂)
 CURVATURES = ("hessian", "fisher", "bfgs")
 #: how ``fit_theta`` turns curvature into intervals: the inverse observed information, or the
 #: sandwich ``H⁻¹ (Σ sᵢ sᵢᵀ) H⁻¹`` over trials' scores (robust to an approximate likelihood)
 COVARIANCES = ("hessian", "sandwich")
+#: how the 95% intervals are formed: from that covariance (Wald), or where the profile
+#: likelihood falls χ²₁(0.95)/2 below its maximum (honest where it is not quadratic)
+INTERVALS = ("wald", "profile")
 
 #: the largest move of one Newton step in any unconstrained coordinate
 MAX_STEP = 1.5
@@ -62,6 +65,9 @@ class FitResult:
     converged: torch.Tensor
     iterations: int
     names: list[str]
+    #: the observed information at θ̂ ``[n_agents, p, p]``: the Hessian of the negative
+    #: log-likelihood in the fit's coordinates (unconstrained free θ, then the nuisance)
+    information: torch.Tensor
 
     def select(self, rows: torch.Tensor) -> FitResult:
         """The agents ``rows`` (an index or mask) of a batched fit."""
@@ -72,6 +78,7 @@ class FitResult:
             log_likelihood=self.log_likelihood[rows],
             intervals=self.intervals.select(rows),
             converged=self.converged[rows],
+            information=self.information[rows],
         )
 
     def agent(self, i: int) -> dict:
@@ -87,6 +94,9 @@ class FitResult:
             "std": named(self.intervals.std[i]),
             "identified": {
                 n: bool(v) for n, v in zip(self.names, self.intervals.identified[i], strict=True)
+            },
+            "profiled": {
+                n: bool(v) for n, v in zip(self.names, self.intervals.profiled[i], strict=True)
             },
             "log_likelihood": float(self.log_likelihood[i]),
             "converged": bool(self.converged[i]),
@@ -104,6 +114,7 @@ def fit_theta(
     curvature: str = "hessian",
     starts: torch.Tensor | None = None,
     covariance: str = "hessian",
+    intervals: str = "wald",
     progress: Callable[[int, int], None] | None = None,
 ) -> FitResult:
     """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``).
@@ -117,12 +128,15 @@ def fit_theta(
     95% intervals from the observed Fisher information, identifiability flags, the
     log-likelihood and whether each fit converged. ``covariance="sandwich"`` widens the
     intervals by how much more the trials' scores vary than the curvature says (they agree
-    when the likelihood is exact).
+    when the likelihood is exact). ``intervals="profile"`` replaces the endpoints by the
+    profile likelihood's (:func:`profile_intervals`).
     """
     if curvature not in CURVATURES:
         raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
     if covariance not in COVARIANCES:
         raise ValueError(f"covariance: expected one of {COVARIANCES}, got {covariance!r}")
+    if intervals not in INTERVALS:
+        raise ValueError(f"intervals: expected one of {INTERVALS}, got {intervals!r}")
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents, device = trials.shape[0], trials.device
@@ -286,16 +300,185 @@ def fit_theta(
     if covariance == "sandwich":
         _, score, _ = _by_rows(scores, params[pick], trials, GRAD_TRIALS)
         meat = score.mT @ score
-    intervals = fisher_intervals(space, theta_hat, theta_free_hat, information, meat)
-    return FitResult(
+    result = FitResult(
         theta_hat=theta_hat,
         nuisance=params[pick, k:],
         log_likelihood=-value[pick],
-        intervals=intervals,
+        intervals=fisher_intervals(space, theta_hat, theta_free_hat, information, meat),
         converged=converged[pick] & maximum,
         iterations=iterations,
         names=space.names,
+        information=information,
     )
+    if intervals == "profile":
+        result = dataclasses.replace(result, intervals=profile_intervals(loss, trials, result))
+    return result
+
+
+def profile_intervals(
+    loss: InverseRationalLoss,
+    trials: TensorDictBase,
+    result: FitResult,
+    max_iter: int = 30,
+    tol: float = 0.01,
+) -> Intervals:
+    """95% profile-likelihood intervals of every free θ of a fit: where the log-likelihood,
+    maximised over all the other parameters (the nuisance too), falls ``Z95²/2`` below its
+    maximum.
+
+    Unlike the Wald interval it follows the likelihood where it is not quadratic, and it does
+    not depend on the coordinates. Each (agent, parameter, side) is a row of one batched
+    root search (Venzon & Moolgavkar's: Newton steps towards "log-likelihood on target, every
+    other gradient zero"), started at the Wald endpoint with the curvature at θ̂, updated by
+    BFGS from the gradients. A side whose likelihood does not fall that far before the
+    parameter's bound ends at the bound. An endpoint found to ``tol`` nats is ``profiled``;
+    the others, and parameters without a Wald interval, keep the Wald endpoints.
+    """
+    space = loss.theta_space
+    wald = result.intervals
+    free = space.free_mask.to(result.theta_hat.device)
+    names = space.free_names
+    k, n_agents = len(names), result.theta_hat.shape[0]
+    if k == 0:
+        return wald
+    centre = torch.cat([space.to_unconstrained(result.theta_hat)[:, free], result.nuisance], -1)
+    device = centre.device
+    # rows agent-major, then parameter, then side (−1, +1)
+    agent = torch.arange(n_agents, device=device).repeat_interleave(2 * k)
+    which = torch.arange(k, device=device).repeat_interleave(2).repeat(n_agents)
+    side = torch.tensor([-1.0, 1.0], dtype=centre.dtype, device=device).repeat(n_agents * k)
+    rows = torch.arange(len(agent), device=device)
+    data = trials[agent.to(trials.device)]
+    curvature = _absolute(result.information)[agent]
+    target = (-result.log_likelihood)[agent] + 0.5 * Z95**2
+    # the Wald endpoint: θ_j moved by 1.96 sd, the others along their regression on θ_j
+    cov, singular = torch.linalg.inv_ex(curvature)
+    column = cov[rows, :, which]
+    sd = column[rows, which].clamp_min(1e-300).sqrt()
+    point = centre[agent] + (side * Z95 / sd).unsqueeze(-1) * column
+    point[:, :k] = point[:, :k].clamp(-BOUND, BOUND)
+    bounded = torch.isfinite(wald.std[:, free]).reshape(-1).repeat_interleave(2)
+    done = ~bounded.to(device) | (singular != 0) | ~torch.isfinite(point).all(-1)
+    found = torch.zeros_like(done)
+    fixed = curvature.clone()
+
+    def evaluate(at: torch.Tensor, i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        ll, score, _ = _by_rows(
+            lambda q, d: _trial_scores(loss, k, q, d), at, data[i], GRAD_TRIALS
+        )
+        return -ll.sum(1), -score.sum(1)
+
+    # the outer search brackets θ_j's endpoint between a point where the profile lies above
+    # its target (θ̂ to begin with) and, once one is seen, a point where it lies below
+    inside = centre[agent].clone()
+    outside = torch.full_like(inside, torch.nan)
+    damping = torch.full_like(target, 1e-3)
+    value, grad = evaluate(point, rows)
+    for _ in range(max_iter):
+        active = (~done).nonzero().squeeze(-1)
+        if not len(active):
+            break
+        x, f, g, h = point[active], value[active], grad[active], curvature[active]
+        j, i = which[active], torch.arange(len(active), device=device)
+        w, v, decrement = _held_step(x, g, h, j, damping[active], k)
+        c = x[i, j]
+        gap = f - target[active]
+        settled = decrement < tol
+        on_bound = c.abs() >= BOUND - 1e-9
+        # converged: on target, or short of it at the bound of θ (the interval ends there)
+        reached = settled & ((gap.abs() < tol) | (on_bound & (gap < 0)))
+        found[active[reached]] = done[active[reached]] = True
+        # the others settled: move θ_j by Newton's step on the profile, whose slope is θ_j's
+        # own gradient there (the envelope theorem), the others along their regression on it.
+        # Outside the bracket, go halfway between its points instead (the others stay in the
+        # basin both share), or twice as far from θ̂ while no point beyond is known. A value
+        # far above the target is taken as beyond the endpoint at once (the profile is far
+        # from quadratic there)
+        far = ~settled & (gap > Z95**2)
+        outer = (settled & ~reached) | far
+        below = (gap < 0).unsqueeze(-1)
+        inside[active] = torch.where(outer.unsqueeze(-1) & below, x, inside[active])
+        outside[active] = torch.where(outer.unsqueeze(-1) & ~below, x, outside[active])
+        lo, hi = inside[active], outside[active]
+        known = torch.isfinite(hi[:, 0])
+        newton = c - gap / g[i, j]
+        within = torch.where(
+            known,
+            (newton - lo[i, j]) * (newton - hi[i, j]) < 0,
+            (newton - lo[i, j]) * side[active] > 0,
+        )
+        direction = v
+        direction[i, j] = 1.0
+        centre_j = centre[agent[active], j]
+        widen = x + (side[active] * (c - centre_j).abs().clamp_min(0.1)).unsqueeze(-1) * direction
+        fallback = torch.where(known.unsqueeze(-1), 0.5 * (lo + hi.nan_to_num()), widen)
+        newton_x = x + (newton.clamp(-BOUND, BOUND) - c).unsqueeze(-1) * direction
+        use_newton = (within & ~far & torch.isfinite(newton)).unsqueeze(-1)
+        step = torch.where(
+            outer.unsqueeze(-1), torch.where(use_newton, newton_x, fallback) - x, w
+        )
+        step = step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1)
+        candidate = x + step
+        candidate[:, :k] = candidate[:, :k].clamp(-BOUND, BOUND)
+        moving = ~reached
+        f_c, g_c = torch.empty_like(f), torch.empty_like(g)
+        if moving.any():
+            f_c[moving], g_c[moving] = evaluate(candidate[moving], active[moving])
+        # a step of the others is taken only if it lowers the value; θ_j's moves always are
+        accept = moving & (outer | (f_c < f))
+        taken = active[accept]
+        curvature[taken] = _bfgs_update(
+            h[accept], (candidate - x)[accept], g_c[accept] - g[accept]
+        )
+        # a refused step of the others restarts their curvature from θ̂'s
+        curvature[active[moving & ~accept]] = fixed[active[moving & ~accept]]
+        point[taken], value[taken], grad[taken] = candidate[accept], f_c[accept], g_c[accept]
+        damping[active] = torch.where(
+            outer, 1e-3, torch.where(accept, damping[active] / 3, damping[active] * 8)
+        ).clamp(1e-9, 1e9)
+        done[active] |= damping[active] >= 1e9
+    endpoint = point[rows, which]
+    # a side that ends on the bound of θ ends on the bound itself, not BOUND's 0.25% short of it
+    endpoint = torch.where(endpoint.abs() >= BOUND - 1e-9, endpoint.sign() * 40, endpoint)
+    endpoint = endpoint.view(n_agents, k, 2)
+    u = torch.zeros(n_agents, 2, space.dim, dtype=centre.dtype, device=centre.device)
+    u[:, :, free] = endpoint.transpose(1, 2)
+    natural = space.from_unconstrained(u.view(-1, space.dim)).view(n_agents, 2, -1)[..., free]
+    profiled = found.view(n_agents, k, 2).all(-1)
+    low, high = wald.low.clone(), wald.high.clone()
+    low[:, free] = torch.where(profiled, natural[:, 0], wald.low[:, free])
+    high[:, free] = torch.where(profiled, natural[:, 1], wald.high[:, free])
+    span = space.high(low.dtype, low.device) - space.low(low.dtype, low.device)
+    flags = torch.zeros_like(wald.identified)
+    flags[:, free] = profiled
+    identified = torch.where(flags, (high - low) / span < 0.5, wald.identified)
+    return dataclasses.replace(wald, low=low, high=high, identified=identified, profiled=flags)
+
+
+def _held_step(
+    params: torch.Tensor,
+    g: torch.Tensor,
+    h: torch.Tensor,
+    which: torch.Tensor,
+    damping: torch.Tensor,
+    k: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The damped Newton step of every coordinate but ``which`` (held, as are θ on a bound),
+    how they follow a move of ``which`` at their minimum (``-h⁻¹ h_j``), and the decrease
+    still to be had in them (the undamped decrement ``½ gᵀ h⁻¹ g`` over them), per row."""
+    n, p = params.shape
+    rows = torch.arange(n, device=params.device)
+    h, g_free = _pin_bounds(params, h, g, k)
+    keep = g_free != 0
+    keep[rows, which] = False
+    eye = torch.eye(p, dtype=h.dtype, device=h.device)
+    inner = torch.where(keep.unsqueeze(-1) & keep.unsqueeze(-2), h, eye)
+    g_free = torch.where(keep, g_free, 0.0)
+    follow = torch.linalg.solve(inner, -torch.where(keep, h[rows, :, which], 0.0))
+    newton = torch.linalg.solve(inner, -g_free)
+    scale = inner.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye + eye
+    step = torch.linalg.solve(inner + damping.view(-1, 1, 1) * scale, -g_free)
+    return step, follow, -0.5 * (g_free * newton).sum(-1)
 
 
 def _by_rows(fn: Callable, params: torch.Tensor, trials: TensorDictBase, budget: int) -> tuple:

@@ -231,6 +231,7 @@ def _concat(results: list[FitResult]) -> FitResult:
         converged=cat([r.converged for r in results]),
         iterations=max(r.iterations for r in results),
         names=results[0].names,
+        information=cat([r.information for r in results]),
     )
 
 
@@ -356,6 +357,7 @@ def _fit_groups(
                     seed=seed,
                     curvature=config.curvature,
                     covariance=config.covariance,
+                    intervals=config.intervals,
                     starts=starts,
                     progress=lambda i, n: bar.update(1),
                 )
@@ -435,6 +437,9 @@ def format_fit(summary: dict[str, Any]) -> str:
         for agent in part["agents"]:
             truth = agent.get("theta_true")
             status = "converged" if agent["converged"] else "NOT converged (raise max_iter)"
+            profiled = [n for n in summary["free"] if agent.get("profiled", {}).get(n)]
+            if profiled:
+                status += f", profile-likelihood intervals for {', '.join(profiled)}"
             lines.append(
                 f"{agent['file']} ({method}): {agent['n_trials']} trials, {agent['n_steps']} "
                 f"steps, log-likelihood {agent['log_likelihood']:.1f}, {status}"

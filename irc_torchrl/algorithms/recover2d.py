@@ -193,6 +193,7 @@ def recover_firefly2d(
             max_iter=config.fit.max_iter,
             curvature=config.fit.curvature,
             covariance=config.fit.covariance,
+            intervals=config.fit.intervals,
             starts=starts,
             seed=config.seed + 2,
             progress=None if progress is None else lambda i, n, m=method: progress(m, i, n),

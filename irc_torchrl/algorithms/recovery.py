@@ -57,6 +57,7 @@ def recover_agents(
         max_iter=fit.max_iter,
         curvature=fit.curvature,
         covariance=fit.covariance,
+        intervals=fit.intervals,
         seed=seed + 2,
         progress=progress,
     )
@@ -87,5 +88,6 @@ def score_recovery(
             "median_rel_error": statistics.median((error / truth.abs().clamp_min(1e-12)).tolist()),
             "median_ci_width": statistics.median((high - low).tolist()),
             "identified_fraction": float(result.intervals.identified[:, j].double().mean()),
+            "profiled_fraction": float(result.intervals.profiled[:, j].double().mean()),
         }
     return {"agents": agents, "parameters": parameters}

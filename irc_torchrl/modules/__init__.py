@@ -1,6 +1,6 @@
 """Policies, value networks and action likelihoods (mirrors ``torchrl.modules``)."""
 
-from irc_torchrl.modules.actor_critic import make_actor, make_critic
+from irc_torchrl.modules.actor_critic import FeaturePolicy, make_actor, make_critic
 from irc_torchrl.modules.factorised_q import FactorisedQ
 from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
 from irc_torchrl.modules.pursuit import BeliefPursuit
@@ -10,6 +10,7 @@ __all__ = [
     "BoltzmannActionModel",
     "CensoredGaussianActionModel",
     "FactorisedQ",
+    "FeaturePolicy",
     "make_actor",
     "make_critic",
 ]

@@ -2,5 +2,12 @@
 
 from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
+from irc_torchrl.objectives.marginal import marginal_filter
 
-__all__ = ["InverseRationalLoss", "Intervals", "batched_hessian", "fisher_intervals"]
+__all__ = [
+    "InverseRationalLoss",
+    "Intervals",
+    "batched_hessian",
+    "fisher_intervals",
+    "marginal_filter",
+]

@@ -18,7 +18,7 @@ import torch
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["batched_hessian", "Intervals", "fisher_intervals"]
+__all__ = ["Z95", "batched_hessian", "Intervals", "fisher_intervals"]
 
 #: two-sided 95% normal quantile
 Z95 = 1.959963984540054
@@ -53,6 +53,8 @@ class Intervals:
     high: torch.Tensor
     identified: torch.Tensor
     covariance: torch.Tensor
+    #: where ``low`` and ``high`` are the profile likelihood's endpoints, not the Wald ones
+    profiled: torch.Tensor
 
     def select(self, rows: torch.Tensor) -> Intervals:
         """The agents ``rows`` (an index or mask)."""
@@ -104,7 +106,12 @@ def fisher_intervals(
     identified = (width < 0.5) & torch.isfinite(std)
     covariance = cov_u[:, :k, :k] * slope.unsqueeze(-1) * slope.unsqueeze(-2)
     return Intervals(
-        std=std, low=ci_low, high=ci_high, identified=identified, covariance=covariance
+        std=std,
+        low=ci_low,
+        high=ci_high,
+        identified=identified,
+        covariance=covariance,
+        profiled=torch.zeros_like(identified),
     )
 
 
