@@ -188,6 +188,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["simulate", "theta.g_v=9"], "g_v=9 is outside its space"),
         (["simulate", "motor_noise=0"], "motor_noise must be positive"),
         (["simulate", "--device", "nonsense"], "device:"),
+        (["fit", "FILE", "--device", "meta"], "device: 'meta' tensors hold no values"),
+        (["simulate", "--device", "cuda"], "device: 'cuda' requested but"),
         (["fit", "FILE", "max_iters=3"], "unknown key 'max_iters'; valid keys: n_screen"),
         (["fit", "FILE", "--free", "g_v,g_x"], "unknown θ parameter 'g_x'"),
         (["fit", "FILE", "--free", "sigma_pos"], "'sigma_pos' is fixed"),

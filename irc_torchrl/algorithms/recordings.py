@@ -66,6 +66,15 @@ def resolve_device(name: str) -> torch.device:
         raise ValueError(f"device: {error}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device: {name!r} requested but torch.cuda.is_available() is False")
+    if device.type == "meta":
+        raise ValueError("device: 'meta' tensors hold no values; expected 'cpu' or 'cuda'")
+    try:
+        torch.zeros(1, device=device)
+    except (RuntimeError, AssertionError):  # a backend this torch build or machine lacks
+        raise ValueError(
+            f"device: {name!r} is not usable here (no working {device.type!r} backend in this "
+            "torch); expected 'cpu' or an available accelerator"
+        ) from None
     return device
 
 
