@@ -328,11 +328,13 @@ def profile_intervals(
 
     Unlike the Wald interval it follows the likelihood where it is not quadratic, and it does
     not depend on the coordinates. Each (agent, parameter, side) is a row of one batched
-    root search (Venzon & Moolgavkar's: Newton steps towards "log-likelihood on target, every
-    other gradient zero"), started at the Wald endpoint with the curvature at θ̂, updated by
-    BFGS from the gradients. A side whose likelihood does not fall that far before the
-    parameter's bound ends at the bound. An endpoint found to ``tol`` nats is ``profiled``;
-    the others, and parameters without a Wald interval, keep the Wald endpoints.
+    search, started at the Wald endpoint: the other coordinates are re-maximised by damped
+    BFGS steps (from the curvature at θ̂), then θ_j takes a Newton step on the profile, whose
+    slope is θ_j's own gradient there, inside a bracket of points above and below the target
+    (else halfway between them). A side whose likelihood does not fall that far before the
+    parameter's bound ends at the bound. An endpoint found to ``tol`` nats (value and the
+    others' remaining decrease) is ``profiled``; the others, and parameters without a Wald
+    interval, keep the Wald endpoints.
     """
     space = loss.theta_space
     wald = result.intervals
@@ -468,12 +470,11 @@ def _held_step(
     still to be had in them (the undamped decrement ``½ gᵀ h⁻¹ g`` over them), per row."""
     n, p = params.shape
     rows = torch.arange(n, device=params.device)
-    h, g_free = _pin_bounds(params, h, g, k)
-    keep = g_free != 0
+    keep = ~_pinned(params, g, k)
     keep[rows, which] = False
     eye = torch.eye(p, dtype=h.dtype, device=h.device)
     inner = torch.where(keep.unsqueeze(-1) & keep.unsqueeze(-2), h, eye)
-    g_free = torch.where(keep, g_free, 0.0)
+    g_free = torch.where(keep, g, 0.0)
     follow = torch.linalg.solve(inner, -torch.where(keep, h[rows, :, which], 0.0))
     newton = torch.linalg.solve(inner, -g_free)
     scale = inner.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye + eye
@@ -505,13 +506,19 @@ def _pin_bounds(
     (an active bound constraint): its gradient is zeroed and its curvature decoupled, so the
     step and the Newton decrement concern the other coordinates only.
     """
-    pinned = torch.zeros_like(g, dtype=torch.bool)
-    pinned[:, :k] = (params[:, :k].abs() >= BOUND - 1e-9) & (params[:, :k] * g[:, :k] < 0)
+    pinned = _pinned(params, g, k)
     keep = ~pinned
     h = torch.where(
         keep.unsqueeze(-1) & keep.unsqueeze(-2), h, torch.diag_embed(pinned.to(h.dtype))
     )
     return h, torch.where(pinned, torch.zeros_like(g), g)
+
+
+def _pinned(params: torch.Tensor, g: torch.Tensor, k: int) -> torch.Tensor:
+    """The θ coordinates on a bound whose descent direction points further out, ``[n, p]``."""
+    pinned = torch.zeros_like(g, dtype=torch.bool)
+    pinned[:, :k] = (params[:, :k].abs() >= BOUND - 1e-9) & (params[:, :k] * g[:, :k] < 0)
+    return pinned
 
 
 def _absolute(h: torch.Tensor) -> torch.Tensor:
