@@ -22,7 +22,13 @@ import torch
 from tensordict import TensorDictBase
 
 from irc_torchrl.data.trajectories import validate_trials
-from irc_torchrl.objectives.fisher import Z95, Intervals, batched_hessian, fisher_intervals
+from irc_torchrl.objectives.fisher import (
+    Z95,
+    Intervals,
+    batched_hessian,
+    fisher_intervals,
+    narrow,
+)
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 __all__ = ["COVARIANCES", "CURVATURES", "INTERVALS", "FitResult", "fit_theta", "profile_intervals"]
@@ -339,8 +345,7 @@ def profile_intervals(
     space = loss.theta_space
     wald = result.intervals
     free = space.free_mask.to(result.theta_hat.device)
-    names = space.free_names
-    k, n_agents = len(names), result.theta_hat.shape[0]
+    k, n_agents = int(free.sum()), result.theta_hat.shape[0]
     if k == 0:
         return wald
     centre = torch.cat([space.to_unconstrained(result.theta_hat)[:, free], result.nuisance], -1)
@@ -419,8 +424,7 @@ def profile_intervals(
         step = torch.where(
             outer.unsqueeze(-1), torch.where(use_newton, newton_x, fallback) - x, w
         )
-        step = step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1)
-        candidate = x + step
+        candidate = x + _within_region(step)
         candidate[:, :k] = candidate[:, :k].clamp(-BOUND, BOUND)
         moving = ~reached
         f_c, g_c = torch.empty_like(f), torch.empty_like(g)
@@ -450,10 +454,9 @@ def profile_intervals(
     low, high = wald.low.clone(), wald.high.clone()
     low[:, free] = torch.where(profiled, natural[:, 0], wald.low[:, free])
     high[:, free] = torch.where(profiled, natural[:, 1], wald.high[:, free])
-    span = space.high(low.dtype, low.device) - space.low(low.dtype, low.device)
     flags = torch.zeros_like(wald.identified)
     flags[:, free] = profiled
-    identified = torch.where(flags, (high - low) / span < 0.5, wald.identified)
+    identified = torch.where(flags, narrow(space, low, high), wald.identified)
     return dataclasses.replace(wald, low=low, high=high, identified=identified, profiled=flags)
 
 
@@ -579,7 +582,12 @@ def _damped_step(
         if not outside.any():
             break
         damping = torch.where(outside, damping * 4, damping)
-    return step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1), damping
+    return _within_region(step), damping
+
+
+def _within_region(step: torch.Tensor) -> torch.Tensor:
+    """Steps ``[n, p]`` shortened, where needed, to ``MAX_STEP`` in every coordinate."""
+    return step * (MAX_STEP / step.abs().amax(-1, keepdim=True)).clamp(max=1)
 
 
 def _trial_scores(

@@ -18,7 +18,7 @@ import torch
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["Z95", "batched_hessian", "Intervals", "fisher_intervals"]
+__all__ = ["Z95", "batched_hessian", "Intervals", "fisher_intervals", "narrow"]
 
 #: two-sided 95% normal quantile
 Z95 = 1.959963984540054
@@ -101,9 +101,7 @@ def fisher_intervals(
     ci_low, ci_high = theta_hat.clone(), theta_hat.clone()
     ci_low[:, free], ci_high[:, free] = ci_low_free, ci_high_free
     # judged by the interval's width, not the delta-method sd, which vanishes on a bound
-    span = space.high(theta_hat.dtype, device) - space.low(theta_hat.dtype, device)
-    width = (ci_high - ci_low) / span
-    identified = (width < 0.5) & torch.isfinite(std)
+    identified = narrow(space, ci_low, ci_high) & torch.isfinite(std)
     covariance = cov_u[:, :k, :k] * slope.unsqueeze(-1) * slope.unsqueeze(-2)
     return Intervals(
         std=std,
@@ -113,6 +111,12 @@ def fisher_intervals(
         covariance=covariance,
         profiled=torch.zeros_like(identified),
     )
+
+
+def narrow(space: ThetaSpace, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """Whether each interval spans less than half of its parameter's prior range."""
+    span = space.high(low.dtype, low.device) - space.low(low.dtype, low.device)
+    return (high - low) / span < 0.5
 
 
 def _embed(space: ThetaSpace, u_free: torch.Tensor, n: int) -> torch.Tensor:
