@@ -203,6 +203,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "curvature (bfgs, fisher or hessian: how the iterations measure curvature), "
         "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
         "intervals (wald, or profile: where the profile likelihood falls 1.92 below its top), "
+        "particles (e.g. 1000: check each fit against a particle filter's likelihood), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
     )
@@ -285,7 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
             "shipped policy plus motor noise; every θ component and the motor noise fitted from "
             "states and actions by the hard E-step (map) and with the agent's observations "
             "integrated out (marginal). Writes summary.json (coverage, errors, widths, belief "
-            "agreement per method), config.yaml, trials/ and figures into --out."
+            "agreement per method), config.yaml, trials/ and figures into --out. particles=1000 "
+            "also checks every fit against a particle filter's likelihood at θ̂ and θ*."
         ),
     )
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")

@@ -136,6 +136,9 @@ class RecordingFitConfig:
     covariance: str = "hessian"
     #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
     intervals: str = "wald"
+    #: particles for checking each fit against a particle filter's likelihood at θ̂
+    #: (0: no check; 1000 take about 12 s per recording of 100 trials on 2 cores)
+    particles: int = 0
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)
@@ -154,6 +157,8 @@ class RecordingFitConfig:
             motor_noise=self.motor_noise,
             threads=self.threads,
         )
+        if self.particles < 0:
+            raise ValueError(f"config: particles must be ≥ 0, got {self.particles}")
         if self.n_starts > self.n_screen:
             raise ValueError(
                 f"config: n_starts={self.n_starts} exceeds n_screen={self.n_screen}; "

@@ -42,7 +42,7 @@ def simulated(tmp_path_factory) -> Path:
 def fitted(simulated, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("fitted")
     args = ["fit", str(simulated / "agent0.csv"), "--out", str(out), "--quiet"]
-    assert main([*args, "--method", "map", "--free", ",".join(FREE)]) == 0
+    assert main([*args, "--method", "map", "--free", ",".join(FREE), "particles=200"]) == 0
     return out, json.loads((out / "summary.json").read_text())
 
 
@@ -98,6 +98,10 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     assert len(agent["motor_noise"]) == 2 and all(0 < s < 1 for s in agent["motor_noise"])
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
+    # the hard E-step ignores the spread of the agent's beliefs: a particle filter finds the
+    # recorded actions far more likely than it does
+    assert agent["particle_check"]["approximation_gap"] > 5
+    assert "particle check: the likelihood's approximation loses" in table
 
 
 def test_fit_writes_beliefs_and_figures(fitted, simulated):
@@ -196,6 +200,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "--free", "g_v", "theta.g_v=1.0"], "both fitted"),
         (["fit", "FILE", "covariance=robust"], "covariance must be one of"),
         (["recover", "fit.covariance=robust"], "fit.covariance must be one of"),
+        (["recover", "particles=-1"], "particles must be ≥ 0"),
+        (["fit", "FILE", "particles=-5"], "particles must be ≥ 0"),
     ],
 )
 def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_path, capsys):

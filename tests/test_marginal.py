@@ -9,7 +9,7 @@ from torchrl.modules import MLP
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
-from irc_torchrl.objectives.marginal import marginal_filter
+from irc_torchrl.objectives.marginal import marginal_filter, particle_log_likelihood
 
 MODEL = Firefly2DModel()
 SPACE = MODEL.theta_space
@@ -331,3 +331,109 @@ def test_the_likelihood_does_not_depend_on_the_arena_frame(method, atol):
     wrong["target"] = trials["target"] + 0.3
     shifted = loss.log_likelihood(theta, loss.nuisance, wrong, per_trial=True)
     assert (shifted - per_trial[0]).abs().max() > 10 * atol
+
+
+def _stand_in_trials(obs_noise, n=6, seed=1):
+    theta = SPACE.from_dict(
+        {"obs_sigma_v": obs_noise, "obs_sigma_w": obs_noise, "sigma_v": 0.1, "sigma_w": 0.1}
+    ).double()
+    action_model, state, action, target = _simulate(theta, 0.15, n=n, seed=seed)
+    nuisance = torch.full((n, 2), math.log(0.15), dtype=torch.float64)
+    return action_model, theta, nuisance, state, action, target
+
+
+@pytest.mark.parametrize("obs_noise", [0.3, 0.8])
+def test_particle_likelihood_matches_monte_carlo(obs_noise):
+    """The particle filter estimates the same likelihood as brute force, within 0.1 nats per
+    10-step trial with 2000 particles (measured ≤ 0.025), and the same seed gives the same
+    numbers."""
+    action_model, theta, nuisance, state, action, target = _stand_in_trials(obs_noise)
+    theta_b = theta.expand(len(state), -1)
+    mc = _monte_carlo(action_model, theta, nuisance, state, action, target, 20000, seed=2)
+
+    def particles(seed):
+        return particle_log_likelihood(
+            MODEL, action_model, theta_b, nuisance, state, action, target, theta_b,
+            n_particles=2000, generator=torch.Generator().manual_seed(seed),
+        )  # fmt: skip
+
+    (estimate, ess), (again, _) = particles(0), particles(0)
+    assert (estimate - mc).abs().max() < 0.1, estimate - mc
+    assert torch.equal(estimate, again)
+    assert (ess > 100).all()
+
+
+def test_particle_likelihood_ignores_steps_after_a_trial_ends():
+    """A trial masked after step 6 scores as the same trial cut at step 6."""
+    action_model, theta, nuisance, state, action, target = _stand_in_trials(0.5, n=3)
+    theta_b = theta.expand(3, -1)
+    mask = torch.ones(3, T, dtype=torch.bool)
+    mask[0, 6:] = False
+    padded = state.clone()
+    padded[0, 6:] = torch.nan  # nothing after the end may be read into the estimate
+    full = particle_log_likelihood(
+        MODEL, action_model, theta_b, nuisance, padded, action, target, theta_b, mask, 500
+    )[0]
+    cut = particle_log_likelihood(
+        MODEL, action_model, theta_b[:1], nuisance[:1], state[:1, :6], action[:1, :6],
+        target[:1], theta_b[:1], n_particles=500,
+    )[0]  # fmt: skip
+    assert torch.isfinite(full).all()
+    torch.testing.assert_close(full[0], cut[0], rtol=0, atol=0.2)
+
+
+def test_particle_likelihood_refuses_no_particles():
+    action_model, theta, nuisance, state, action, target = _stand_in_trials(0.5, n=2)
+    theta_b = theta.expand(2, -1)
+    with pytest.raises(ValueError, match="n_particles"):
+        particle_log_likelihood(
+            MODEL, action_model, theta_b, nuisance, state, action, target, theta_b,
+            n_particles=0,
+        )  # fmt: skip
+
+
+def test_the_loss_scores_transitions_beside_the_particle_likelihood_where_the_world_is_shared():
+    from irc_torchrl.modules.likelihood import BoltzmannActionModel
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.from_dict({"obs_sigma_v": 0.6, "sigma_v": 0.3}).double().unsqueeze(0)
+    action_model, trials = _trials(1, 3, theta, 0.15, seed=3)
+    nuisance = torch.full((1, 2), math.log(0.15), dtype=torch.float64)
+    known, shared = (
+        InverseRationalLoss(MODEL, action_model, world=world) for world in ("known", "shared")
+    )
+    actions_only, ess = known.particle_log_likelihood(theta, nuisance, trials, 300, seed=4)
+    with_moves, _ = shared.particle_log_likelihood(theta, nuisance, trials, 300, seed=4)
+    moves = shared.log_likelihood(theta, nuisance, trials, per_trial=True) - known.log_likelihood(
+        theta, nuisance, trials, per_trial=True
+    )
+    assert ess.shape == (1, 3) and (moves.abs() > 1).all()
+    torch.testing.assert_close(with_moves, actions_only + moves)
+    discrete = InverseRationalLoss(MODEL, BoltzmannActionModel(torch.nn.Identity()))
+    with pytest.raises(ValueError, match="continuous action model"):
+        discrete.particle_log_likelihood(theta, nuisance, trials)
+
+
+def test_the_particle_check_tells_the_marginal_approximation_from_the_hard_e_step():
+    """On the smooth stand-in the outer filter loses under 0.02 nats per trial against the
+    particle filter (measured 0.003); the hard E-step loses 16 times more (asserted: 5)."""
+    from irc_torchrl.algorithms.fit import particle_check
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.from_dict({"obs_sigma_v": 0.8, "obs_sigma_w": 0.8}).double().unsqueeze(0)
+    action_model, trials = _trials(1, 6, theta, 0.15, seed=5)
+    nuisance = torch.full((1, 2), math.log(0.15), dtype=torch.float64)
+    gap = {
+        method: particle_check(
+            InverseRationalLoss(MODEL, action_model, method=method),
+            trials,
+            theta,
+            nuisance,
+            n_particles=2000,
+        )  # fmt: skip
+        for method in ("marginal", "map")
+    }
+    per_trial = {m: float(c["approximation_gap"].abs()) / 6 for m, c in gap.items()}
+    assert per_trial["marginal"] < 0.02, per_trial
+    assert per_trial["map"] > 5 * per_trial["marginal"], per_trial
+    assert gap["marginal"]["min_effective_particles"] > 100

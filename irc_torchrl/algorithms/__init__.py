@@ -13,7 +13,7 @@ from irc_torchrl.algorithms.ensemble import (
     load_ensemble_policy,
     train_ensemble,
 )
-from irc_torchrl.algorithms.fit import FitResult, fit_theta, profile_intervals
+from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check, profile_intervals
 from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 
@@ -28,6 +28,7 @@ __all__ = [
     "load_ensemble_policy",
     "motor_noise_policy",
     "optimal_values",
+    "particle_check",
     "profile_intervals",
     "simulate_agents",
     "train_ensemble",

@@ -31,7 +31,15 @@ from irc_torchrl.objectives.fisher import (
 )
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-__all__ = ["COVARIANCES", "CURVATURES", "INTERVALS", "FitResult", "fit_theta", "profile_intervals"]
+__all__ = [
+    "COVARIANCES",
+    "CURVATURES",
+    "INTERVALS",
+    "FitResult",
+    "fit_theta",
+    "particle_check",
+    "profile_intervals",
+]
 
 #: how the iterations measure curvature (the intervals always use the exact Hessian at θ̂)
 CURVATURES = ("hessian", "fisher", "bfgs")
@@ -370,9 +378,7 @@ def profile_intervals(
     fixed = curvature.clone()
 
     def evaluate(at: torch.Tensor, i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        ll, score, _ = _by_rows(
-            lambda q, d: _trial_scores(loss, k, q, d), at, data[i], GRAD_TRIALS
-        )
+        ll, score, _ = _by_rows(lambda q, d: _trial_scores(loss, k, q, d), at, data[i], GRAD_TRIALS)
         return -ll.sum(1), -score.sum(1)
 
     # the outer search brackets θ_j's endpoint between a point where the profile lies above
@@ -421,9 +427,7 @@ def profile_intervals(
         fallback = torch.where(known.unsqueeze(-1), 0.5 * (lo + hi.nan_to_num()), widen)
         newton_x = x + (newton.clamp(-BOUND, BOUND) - c).unsqueeze(-1) * direction
         use_newton = (within & ~far & torch.isfinite(newton)).unsqueeze(-1)
-        step = torch.where(
-            outer.unsqueeze(-1), torch.where(use_newton, newton_x, fallback) - x, w
-        )
+        step = torch.where(outer.unsqueeze(-1), torch.where(use_newton, newton_x, fallback) - x, w)
         candidate = x + _within_region(step)
         candidate[:, :k] = candidate[:, :k].clamp(-BOUND, BOUND)
         moving = ~reached
@@ -433,9 +437,7 @@ def profile_intervals(
         # a step of the others is taken only if it lowers the value; θ_j's moves always are
         accept = moving & (outer | (f_c < f))
         taken = active[accept]
-        curvature[taken] = _bfgs_update(
-            h[accept], (candidate - x)[accept], g_c[accept] - g[accept]
-        )
+        curvature[taken] = _bfgs_update(h[accept], (candidate - x)[accept], g_c[accept] - g[accept])
         # a refused step of the others restarts their curvature from θ̂'s
         curvature[active[moving & ~accept]] = fixed[active[moving & ~accept]]
         point[taken], value[taken], grad[taken] = candidate[accept], f_c[accept], g_c[accept]
@@ -458,6 +460,36 @@ def profile_intervals(
     flags[:, free] = profiled
     identified = torch.where(flags, narrow(space, low, high), wald.identified)
     return dataclasses.replace(wald, low=low, high=high, identified=identified, profiled=flags)
+
+
+def particle_check(
+    loss: InverseRationalLoss,
+    trials: TensorDictBase,
+    theta: torch.Tensor,
+    nuisance: torch.Tensor,
+    n_particles: int = 1000,
+    seed: int = 0,
+) -> dict[str, torch.Tensor]:
+    """How far the loss's likelihood is from the one it approximates, at θ, per agent ``[A]``.
+
+    ``particle_log_likelihood`` is a particle filter's estimate of the likelihood with the
+    agent's observations integrated out (:meth:`InverseRationalLoss.particle_log_likelihood`),
+    ``approximation_gap`` that minus the loss's own log-likelihood (what its approximation
+    loses) and ``min_effective_particles`` the fewest effective particles of any trial (near
+    1: too few particles). A gap that differs between θ̂ and nearby θ biases θ̂; on the 2D
+    recovery the marginal intervals of agents with a gap under 20 nats at θ̂ covered the
+    truth far more often than the others' (README).
+    """
+    theta = theta.to(nuisance.dtype)
+    with torch.no_grad():
+        approximate = loss.log_likelihood(theta, nuisance, trials)
+    particle, ess = loss.particle_log_likelihood(theta, nuisance, trials, n_particles, seed)
+    particle = particle.sum(1)
+    return {
+        "particle_log_likelihood": particle,
+        "approximation_gap": particle - approximate,
+        "min_effective_particles": ess.amin(1),
+    }
 
 
 def _held_step(

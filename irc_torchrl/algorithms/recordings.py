@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 import irc_torchrl
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
-from irc_torchrl.algorithms.fit import FitResult, fit_theta
+from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
@@ -283,7 +283,7 @@ def fit_recordings(
         action_model = CensoredGaussianActionModel(
             FeaturePolicy(actor), spec.space.low, spec.space.high, config.motor_noise
         )
-        fits, beliefs, timings = _fit_groups(
+        fits, beliefs, timings, checks = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress
         )
     timings = {"read_s": read_s, **timings}
@@ -293,7 +293,7 @@ def fit_recordings(
         torch.stack([space.from_dict(t, field="theta_true") for t in truths]) if known else None
     )
     by_method = {
-        name: _scored(space, result, theta_true, paths, labels, recordings)
+        name: _scored(space, result, theta_true, paths, labels, recordings, checks[name])
         for name, result in fits.items()
     }
     primary = "marginal" if method in ("marginal", "both") else "map"
@@ -331,11 +331,13 @@ def _fit_groups(
     seed: int,
     device: torch.device,
     progress: bool,
-) -> tuple[dict[str, FitResult], list[TensorDict], dict[str, float]]:
+) -> tuple[dict[str, FitResult], list[TensorDict], dict[str, float], dict[str, list]]:
     """Fit every recording, batching those with equal trial counts; per method and per file.
 
     Returns the fit per method (agents in the order of ``recordings``), each recording's
-    beliefs under the primary method's θ̂ (``[n_trials, T]``) and the time of each method.
+    beliefs under the primary method's θ̂ (``[n_trials, T]``), the time of each method and,
+    with ``config.particles``, each recording's :func:`particle_check` at θ̂ per method
+    (``None`` without).
     """
     groups: dict[int, list[int]] = {}
     for i, recording in enumerate(recordings):
@@ -343,6 +345,7 @@ def _fit_groups(
     methods = ["map"] if method == "map" else ["map", "marginal"]
     parts: dict[str, list[tuple[list[int], FitResult]]] = {m: [] for m in methods}
     beliefs: list[TensorDict | None] = [None] * len(recordings)
+    checks: dict[str, list] = {m: [None] * len(recordings) for m in methods}
     timings = {f"fit_{m}_s": 0.0 for m in methods}
     for members in groups.values():
         steps = max(recordings[i].shape[1] for i in members)
@@ -377,14 +380,23 @@ def _fit_groups(
                 for j, i in enumerate(members):
                     beliefs[i] = recovered[j, :, : recordings[i].shape[1]]
             timings[f"fit_{name}_s"] += time.perf_counter() - start
+            if config.particles:
+                start = time.perf_counter()
+                check = particle_check(
+                    loss, held, result.theta_hat, result.nuisance, config.particles, seed
+                )
+                for j, i in enumerate(members):
+                    checks[name][i] = {k: float(v[j]) for k, v in check.items()}
+                key = f"particle_check_{name}_s"
+                timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
     fits = {}
     for name, pieces in parts.items():
         order = [i for members, _ in pieces for i in members]
         combined = _concat([r for _, r in pieces])
         rank = torch.tensor(order).argsort()
         fits[name] = combined.select(rank)
-    timings["fit_s"] = sum(timings.values())
-    return fits, beliefs, timings
+    timings["fit_s"] = sum(v for k, v in timings.items() if k.startswith("fit_"))
+    return fits, beliefs, timings, checks
 
 
 def _scored(
@@ -394,6 +406,7 @@ def _scored(
     paths: list[Path],
     labels: list[str],
     recordings: list[TensorDict],
+    checks: list[dict | None],
 ) -> dict[str, Any]:
     """The summary's ``agents`` (and, with the truth, ``parameters``) of one method's fit."""
     if theta_true is not None:
@@ -409,6 +422,8 @@ def _scored(
             n_steps=int(recordings[i]["mask"].sum()),
             motor_noise=[math.exp(float(v)) for v in result.nuisance[i]],
         )
+        if checks[i] is not None:
+            agent["particle_check"] = checks[i]
     return scored
 
 
@@ -465,6 +480,13 @@ def format_fit(summary: dict[str, Any]) -> str:
                 lines.append(row)
             noise = ", ".join(f"{v:.3g}" for v in agent["motor_noise"])
             lines.append(f"  motor noise std (fitted): {noise}")
+            check = agent.get("particle_check")
+            if check:
+                lines.append(
+                    f"  particle check: the likelihood's approximation loses "
+                    f"{check['approximation_gap']:.1f} nats at θ̂ (fewest effective particles "
+                    f"in a trial: {check['min_effective_particles']:.0f})"
+                )
         if "parameters" in part:
             covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part["parameters"].items())
             lines.append(f"{method}: truth inside the 95% interval (fraction of files): {covered}")

@@ -2,7 +2,7 @@
 
 from irc_torchrl.objectives.fisher import Intervals, batched_hessian, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
-from irc_torchrl.objectives.marginal import marginal_filter
+from irc_torchrl.objectives.marginal import marginal_filter, particle_log_likelihood
 
 __all__ = [
     "InverseRationalLoss",
@@ -10,4 +10,5 @@ __all__ = [
     "batched_hessian",
     "fisher_intervals",
     "marginal_filter",
+    "particle_log_likelihood",
 ]

@@ -18,7 +18,11 @@ from torchrl.objectives import LossModule
 
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
-from irc_torchrl.objectives.marginal import MOMENT_RULES, marginal_filter
+from irc_torchrl.objectives.marginal import (
+    MOMENT_RULES,
+    marginal_filter,
+    particle_log_likelihood,
+)
 from irc_torchrl.theta import ThetaSpace
 
 __all__ = ["METHODS", "InverseRationalLoss"]
@@ -143,19 +147,12 @@ class InverseRationalLoss(LossModule):
         The gradient of the second is a sampled score: its outer product summed over trials
         estimates the Fisher information (what ``fit_theta(curvature="fisher")`` steps with).
         """
-        keys = self.tensor_keys
-        dtype = theta.dtype
-        state = trials[keys.state].to(dtype)
-        target = trials[keys.target][:, :, 0].to(dtype)
-        action, mask = trials[keys.action], trials[keys.mask]
-        theta_b, nuisance_b = (
-            x if x.dim() == 3 else x.unsqueeze(1).expand(*state.shape[:2], -1)
-            for x in (theta, nuisance)
+        theta_b, nuisance_b, state, action, target, mask, task_theta = self._fields(
+            theta, nuisance, trials
         )
         if self.method == "marginal":
-            task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
             logp, *_, draws = marginal_filter(
-                self.model, self.action_model, theta_b, nuisance_b, state, action.to(dtype),
+                self.model, self.action_model, theta_b, nuisance_b, state, action.to(state.dtype),
                 target, task_theta, mask, generator, self.moments,
             )  # fmt: skip
             total = torch.where(mask, logp, torch.zeros_like(logp)).sum(2)
@@ -170,6 +167,62 @@ class InverseRationalLoss(LossModule):
             )
             total, drawn = total + moved, drawn + moved_drawn
         return total, drawn if generator is not None else None
+
+    def particle_log_likelihood(
+        self,
+        theta: torch.Tensor,
+        nuisance: torch.Tensor,
+        trials: TensorDictBase,
+        n_particles: int = 1000,
+        seed: int = 0,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The likelihood both estimators approximate, per trial ``[n_agents, n_trials]``, by a
+        particle filter (:func:`~irc_torchrl.objectives.marginal.particle_log_likelihood`),
+        and each trial's smallest effective sample size.
+
+        Compared with :meth:`log_likelihood` (``per_trial=True``) at θ̂ and nearby θ, it shows
+        what the estimator's approximation costs on these trials, and whether that cost
+        depends on θ (which biases θ̂). Needs a continuous action model.
+        """
+        if not hasattr(self.action_model, "assimilate"):
+            raise ValueError(
+                "particle_log_likelihood: needs a continuous action model, "
+                f"got {type(self.action_model).__name__}"
+            )
+        theta_b, nuisance_b, state, action, target, mask, task_theta = self._fields(
+            theta, nuisance, trials
+        )
+        generator = torch.Generator().manual_seed(seed)
+        total, ess = particle_log_likelihood(
+            self.model, self.action_model, theta_b, nuisance_b, state, action.to(state.dtype),
+            target, task_theta, mask, n_particles, generator,
+        )  # fmt: skip
+        if self.world == "shared":
+            total = total + self._transition_log_likelihood(theta_b, state, action, mask, None)[0]
+        return total, ess
+
+    def _fields(
+        self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
+    ) -> tuple[torch.Tensor, ...]:
+        """The recorded fields in θ's dtype, and θ and the nuisance per trial."""
+        keys = self.tensor_keys
+        dtype = theta.dtype
+        state = trials[keys.state].to(dtype)
+        target = trials[keys.target][:, :, 0].to(dtype)
+        task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
+        theta_b, nuisance_b = (
+            x if x.dim() == 3 else x.unsqueeze(1).expand(*state.shape[:2], -1)
+            for x in (theta, nuisance)
+        )
+        return (
+            theta_b,
+            nuisance_b,
+            state,
+            trials[keys.action],
+            target,
+            trials[keys.mask],
+            task_theta,
+        )
 
     def _map_log_likelihood(
         self, theta_b, nuisance_b, state, action, target, mask, generator

@@ -15,6 +15,10 @@ linearised at the current estimate, as exact inverse LQG is in the linear case);
 ``E[z_t | actions so far]``, the agent's belief as recovered from its behaviour. With the
 outer covariance held at zero this reduces to the hard E-step (observations at their most
 probable value, ``method="map"``).
+
+:func:`particle_log_likelihood` estimates the same likelihood without the Gaussian outer
+approximation (a particle filter over whole simulated agents): not differentiable and far
+costlier, it is the reference that measures what the outer filter loses on given trials.
 """
 
 from __future__ import annotations
@@ -25,16 +29,18 @@ from collections.abc import Callable
 import torch
 from torch.func import vjp, vmap
 
-from irc_torchrl.envs.belief import ekf_gain, ekf_predict, joseph_update
+from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_update
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel, gaussian_log_prob_of_draw
 
-__all__ = ["MOMENT_RULES", "marginal_filter"]
+__all__ = ["MOMENT_RULES", "marginal_filter", "particle_log_likelihood"]
 
 #: how the policy's output moments over the uncertain belief are computed
 MOMENT_RULES = ("cubature", "linearised")
 #: variance added to the outer covariance before its Cholesky factor (it starts at zero)
 _JITTER = 1e-10
+#: how many particles (trials × particles) one chunk of :func:`particle_log_likelihood` holds
+_PARTICLE_BUDGET = 2**18
 
 
 def marginal_filter(
@@ -139,6 +145,119 @@ def marginal_filter(
 
     draws = stack(draws) if draws else torch.zeros_like(stack(logps))
     return stack(logps), stack(means), stack(covs), stack(outers), draws
+
+
+@torch.no_grad()
+def particle_log_likelihood(
+    model: TaskModel,
+    action_model: CensoredGaussianActionModel,
+    theta: torch.Tensor,
+    nuisance: torch.Tensor,
+    state: torch.Tensor,
+    action: torch.Tensor,
+    target: torch.Tensor,
+    task_theta: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    n_particles: int = 1000,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``log p(a_{0:T} | s_{0:T}, θ)`` per trial by a bootstrap particle filter, ``[*B]``.
+
+    Each particle is one agent: it draws its observations from the world's noise given the
+    recorded states, runs its own filter (linearised at its own belief) and is weighted by the
+    recorded action; the particles are then resampled (systematically). The estimate of the
+    likelihood (not of its log) is unbiased and exact as ``n_particles`` grows, with no
+    Gaussian approximation of the agent's belief; what :func:`marginal_filter` loses against
+    it is the cost of that approximation, large where the policy switches within the belief's
+    spread. Arguments as for :func:`marginal_filter`.
+
+    Returns:
+        the log-likelihood estimate ``[*B]`` and the smallest effective sample size of the
+        weights over the trial's steps ``[*B]`` (near 1: too few particles for that trial).
+    """
+    if n_particles < 1:
+        raise ValueError(f"n_particles: expected an integer ≥ 1, got {n_particles}")
+    generator = generator if generator is not None else torch.Generator().manual_seed(0)
+    batch, steps = state.shape[:-2], state.shape[-2]
+    flat = batch.numel()
+    mask = (
+        torch.ones(*batch, steps, dtype=torch.bool, device=state.device) if mask is None else mask
+    )
+    rows = (
+        x.reshape(flat, *x.shape[len(batch) :])
+        for x in (theta, nuisance, state, action, target, task_theta, mask)
+    )
+    size = max(1, _PARTICLE_BUDGET // n_particles)
+    parts = [
+        _particle_chunk(model, action_model, *chunk, n_particles, generator)
+        for chunk in zip(*(x.split(size) for x in rows), strict=True)
+    ]
+    log_likelihood, ess = (torch.cat(x).reshape(batch) for x in zip(*parts, strict=True))
+    return log_likelihood, ess
+
+
+def _particle_chunk(
+    model: TaskModel,
+    action_model: CensoredGaussianActionModel,
+    theta: torch.Tensor,
+    nuisance: torch.Tensor,
+    state: torch.Tensor,
+    action: torch.Tensor,
+    target: torch.Tensor,
+    task_theta: torch.Tensor,
+    mask: torch.Tensor,
+    n: int,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`particle_log_likelihood` for rows ``[B]`` (trials), ``n`` particles each."""
+    b, steps = mask.shape
+    device, dtype = state.device, state.dtype
+
+    def per_particle(x: torch.Tensor) -> torch.Tensor:
+        return x.repeat_interleave(n, 0)
+
+    theta_p, nuisance_p, target_p, world_p = map(
+        per_particle, (theta, nuisance, target, task_theta)
+    )
+    mean, cov = model.initial_belief(per_particle(state[:, 0]), target_p, theta_p)
+    total = torch.zeros(b, dtype=dtype, device=device)
+    ess = torch.full((b,), float(n), dtype=dtype, device=device)
+    offset = torch.arange(b, device=device).unsqueeze(-1) * n
+    for t in range(steps):
+        live = mask[:, t]
+        if not live.any():
+            break
+        step = torch.full((b * n, 1), t, dtype=torch.long, device=device)
+        a_t = per_particle(action[:, t])
+        features = model.belief_features(mean, cov, target_p, step, theta_p)
+        scored = model.scored_actions(a_t, step)
+        extra = () if scored is None else (scored,)
+        logw = action_model.log_prob(features, a_t, nuisance_p, *extra).view(b, n)
+        logw = torch.where(live.unsqueeze(-1), logw, torch.zeros_like(logw))
+        total = total + logw.logsumexp(-1) - math.log(n)
+        weight = torch.softmax(logw, -1)
+        ess = torch.where(live, torch.minimum(ess, 1 / (weight**2).sum(-1)), ess)
+        if t + 1 == steps or not mask[:, t + 1].any():
+            break
+        # systematic resampling: one uniform per trial
+        u = torch.rand(b, 1, dtype=dtype, generator=generator).to(device)
+        grid = (u + torch.arange(n, dtype=dtype, device=device)) / n
+        pick = torch.searchsorted(weight.cumsum(-1), grid).clamp_max(n - 1)
+        pick = (pick + offset).reshape(-1)
+        mean, cov = mean[pick], cov[pick]
+        # each particle's own observation of the next recorded state, and its own filter;
+        # trials that have ended stay put (their padding is never read)
+        keep = per_particle(mask[:, t + 1]).unsqueeze(-1)
+        nxt = torch.where(keep, per_particle(state[:, t + 1]), torch.zeros_like(mean))
+        observation = None
+        if model.observation_dim:
+            root = torch.linalg.cholesky(model.observation_cov(nxt, world_p))
+            noise = torch.randn(b * n, root.shape[-1], 1, dtype=dtype, generator=generator)
+            observation = model.observe(nxt, theta_p) + (root @ noise.to(device)).squeeze(-1)
+        moved = ekf_step(model, mean, cov, a_t, observation, theta_p)
+        mean = torch.where(keep, moved[0], mean)
+        cov = torch.where(keep.unsqueeze(-1), moved[1], cov)
+    return total, ess
 
 
 def _linearised(
