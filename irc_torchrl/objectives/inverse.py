@@ -256,18 +256,14 @@ class InverseRationalLoss(LossModule):
         ``method="marginal"`` the mean is its posterior mean given the actions so far and
         ``("belief", "mean_cov")`` says how well the actions pin it down (zero for ``map``).
         """
-        keys = self.tensor_keys
-        dtype = theta.dtype
-        state = trials[keys.state].to(dtype)
-        target = trials[keys.target][:, :, 0].to(dtype)
-        action = trials[keys.action].to(dtype)
-        theta_b = theta.unsqueeze(1).expand(*state.shape[:2], -1)
+        theta_b, nuisance_b, state, action, target, mask, task_theta = self._fields(
+            theta, nuisance, trials
+        )
+        action = action.to(state.dtype)
         if self.method == "marginal":
-            nuisance_b = nuisance.unsqueeze(1).expand(*state.shape[:2], -1)
-            task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
             _, mean, cov, mean_cov, _ = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action, target,
-                task_theta, trials[keys.mask], moments=self.moments,
+                task_theta, mask, moments=self.moments,
             )  # fmt: skip
         else:
             mean, cov = self.beliefs(theta_b, state, action, target)
