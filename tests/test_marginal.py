@@ -93,6 +93,16 @@ def _monte_carlo(action_model, theta, nuisance, state, action, target, samples, 
     return total.logsumexp(-1) - math.log(samples)
 
 
+def _stand_in_trials(obs_noise, n=6, seed=1, **simulate):
+    """``n`` trials of the stand-in agent (motor noise 0.15) with its θ and motor nuisance."""
+    theta = SPACE.from_dict(
+        {"obs_sigma_v": obs_noise, "obs_sigma_w": obs_noise, "sigma_v": 0.1, "sigma_w": 0.1}
+    ).double()
+    action_model, state, action, target = _simulate(theta, 0.15, n=n, seed=seed, **simulate)
+    nuisance = torch.full((n, 2), math.log(0.15), dtype=torch.float64)
+    return action_model, theta, nuisance, state, action, target
+
+
 @pytest.mark.parametrize(
     "obs_noise, lapse, moments",
     [
@@ -106,12 +116,7 @@ def test_marginal_likelihood_matches_monte_carlo(obs_noise, lapse, moments):
     """The outer filter's likelihood is within 0.1 nats (per 10-step trial) of brute force
     (measured ≤ 0.01); the hard E-step is much further off (it ignores the spread of the
     agent's beliefs)."""
-    theta = SPACE.from_dict(
-        {"obs_sigma_v": obs_noise, "obs_sigma_w": obs_noise, "sigma_v": 0.1, "sigma_w": 0.1}
-    ).double()
-    motor = 0.15
-    action_model, state, action, target = _simulate(theta, motor, n=6, seed=1, lapse=lapse)
-    nuisance = torch.full((6, 2), math.log(motor), dtype=torch.float64)
+    action_model, theta, nuisance, state, action, target = _stand_in_trials(obs_noise, lapse=lapse)
     theta_b = theta.expand(6, -1)
     logp = marginal_filter(
         MODEL, action_model, theta_b, nuisance, state, action, target, theta_b, moments=moments
@@ -134,11 +139,7 @@ def test_cubature_follows_a_sharply_switching_policy_better_than_the_tangent():
     """Where the policy bends within the spread of the agent's belief, the cubature rule's
     likelihood is nearer brute force than the linearisation's (measured mean error 0.017
     against 0.051 nats per trial)."""
-    theta = SPACE.from_dict(
-        {"obs_sigma_v": 0.3, "obs_sigma_w": 0.3, "sigma_v": 0.1, "sigma_w": 0.1}
-    ).double()
-    action_model, state, action, target = _simulate(theta, 0.15, n=6, seed=1, sharpness=6.0)
-    nuisance = torch.full((6, 2), math.log(0.15), dtype=torch.float64)
+    action_model, theta, nuisance, state, action, target = _stand_in_trials(0.3, sharpness=6.0)
     theta_b = theta.expand(6, -1)
     mc = _monte_carlo(action_model, theta, nuisance, state, action, target, 20000, seed=2)
     error = {
@@ -331,15 +332,6 @@ def test_the_likelihood_does_not_depend_on_the_arena_frame(method, atol):
     wrong["target"] = trials["target"] + 0.3
     shifted = loss.log_likelihood(theta, loss.nuisance, wrong, per_trial=True)
     assert (shifted - per_trial[0]).abs().max() > 10 * atol
-
-
-def _stand_in_trials(obs_noise, n=6, seed=1):
-    theta = SPACE.from_dict(
-        {"obs_sigma_v": obs_noise, "obs_sigma_w": obs_noise, "sigma_v": 0.1, "sigma_w": 0.1}
-    ).double()
-    action_model, state, action, target = _simulate(theta, 0.15, n=n, seed=seed)
-    nuisance = torch.full((n, 2), math.log(0.15), dtype=torch.float64)
-    return action_model, theta, nuisance, state, action, target
 
 
 @pytest.mark.parametrize("obs_noise", [0.3, 0.8])
