@@ -9,7 +9,13 @@ import torch
 from scipy import stats
 
 import irc_torchrl.algorithms.fit as fit_module
-from irc_torchrl.algorithms.fit import _behind_best, _bfgs_update, _screen_starts, fit_theta
+from irc_torchrl.algorithms.fit import (
+    _behind_best,
+    _bfgs_update,
+    _screen_starts,
+    fit_theta,
+    profile_intervals,
+)
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
 from irc_torchrl.envs.firefly1d import STOP
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -370,6 +376,27 @@ def test_profile_intervals_end_where_the_profile_likelihood_has_fallen_by_the_qu
                 assert drop == pytest.approx(Z95**2 / 2, abs=0.02), (agent, name, float(end))
     with pytest.raises(ValueError, match="intervals: expected one of"):
         fit_theta(loss, trials, intervals="likelihood")
+
+
+def test_profile_intervals_of_named_parameters_leave_the_others_wald(
+    firefly1d_model, trained_q, space
+):
+    """Profiling one parameter finds the endpoints profiling all of them finds for it (each
+    (agent, parameter, side) is its own search) and keeps the others' Wald intervals."""
+    _, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1)
+    loss = make_loss(firefly1d_model, trained_q, 6)
+    wald = fit_theta(loss, trials, seed=0)
+    name = space.free_names[0]
+    j = space.index(name)
+    every = profile_intervals(loss, trials, wald)
+    one = profile_intervals(loss, trials, wald, names=[name])
+    assert one.profiled[:, j].all() and one.profiled.sum() == one.profiled[:, j].sum()
+    for end in ("low", "high"):
+        torch.testing.assert_close(getattr(one, end)[:, j], getattr(every, end)[:, j])
+        others = torch.arange(space.dim) != j
+        assert torch.equal(getattr(one, end)[:, others], getattr(wald.intervals, end)[:, others])
+    with pytest.raises(ValueError, match=r"names: expected free parameters \["):
+        profile_intervals(loss, trials, wald, names=["g_x"])
 
 
 def test_a_profile_that_stays_above_the_quantile_ends_on_the_bound(

@@ -15,7 +15,7 @@ The exact Hessian at θ̂, the observed Fisher information, gives the intervals 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -335,10 +335,11 @@ def profile_intervals(
     result: FitResult,
     max_iter: int = 30,
     tol: float = 0.01,
+    names: Sequence[str] | None = None,
 ) -> Intervals:
-    """95% profile-likelihood intervals of every free θ of a fit: where the log-likelihood,
-    maximised over all the other parameters (the nuisance too), falls ``Z95²/2`` below its
-    maximum.
+    """95% profile-likelihood intervals of the free θ of a fit (``names``, all by default):
+    where the log-likelihood, maximised over all the other parameters (the nuisance too),
+    falls ``Z95²/2`` below its maximum.
 
     Unlike the Wald interval it follows the likelihood where it is not quadratic, and it does
     not depend on the coordinates. Each (agent, parameter, side) is a row of one batched
@@ -352,16 +353,21 @@ def profile_intervals(
     """
     space = loss.theta_space
     wald = result.intervals
+    names = space.free_names if names is None else list(names)
+    unknown = [n for n in names if n not in space.free_names]
+    if unknown:
+        raise ValueError(f"names: expected free parameters {space.free_names}, got {unknown}")
     free = space.free_mask.to(result.theta_hat.device)
-    k, n_agents = int(free.sum()), result.theta_hat.shape[0]
-    if k == 0:
+    k, n_agents, n_named = int(free.sum()), result.theta_hat.shape[0], len(names)
+    if n_named == 0:
         return wald
+    chosen = torch.tensor([space.free_names.index(n) for n in names])
     centre = torch.cat([space.to_unconstrained(result.theta_hat)[:, free], result.nuisance], -1)
     device = centre.device
     # rows agent-major, then parameter, then side (−1, +1)
-    agent = torch.arange(n_agents, device=device).repeat_interleave(2 * k)
-    which = torch.arange(k, device=device).repeat_interleave(2).repeat(n_agents)
-    side = torch.tensor([-1.0, 1.0], dtype=centre.dtype, device=device).repeat(n_agents * k)
+    agent = torch.arange(n_agents, device=device).repeat_interleave(2 * n_named)
+    which = chosen.to(device).repeat_interleave(2).repeat(n_agents)
+    side = torch.tensor([-1.0, 1.0], dtype=centre.dtype, device=device).repeat(n_agents * n_named)
     rows = torch.arange(len(agent), device=device)
     data = trials[agent.to(trials.device)]
     curvature = _absolute(result.information)[agent]
@@ -372,7 +378,7 @@ def profile_intervals(
     sd = column[rows, which].clamp_min(1e-300).sqrt()
     point = centre[agent] + (side * Z95 / sd).unsqueeze(-1) * column
     point[:, :k] = point[:, :k].clamp(-BOUND, BOUND)
-    bounded = torch.isfinite(wald.std[:, free]).reshape(-1).repeat_interleave(2)
+    bounded = torch.isfinite(wald.std[:, free][:, chosen]).reshape(-1).repeat_interleave(2)
     done = ~bounded.to(device) | (singular != 0) | ~torch.isfinite(point).all(-1)
     found = torch.zeros_like(done)
     fixed = curvature.clone()
@@ -448,16 +454,17 @@ def profile_intervals(
     endpoint = point[rows, which]
     # a side that ends on the bound of θ ends on the bound itself, not BOUND's 0.25% short of it
     endpoint = torch.where(endpoint.abs() >= BOUND - 1e-9, endpoint.sign() * 40, endpoint)
-    endpoint = endpoint.view(n_agents, k, 2)
+    endpoint = endpoint.view(n_agents, n_named, 2)
+    columns = free.nonzero().squeeze(-1)[chosen.to(device)]
     u = torch.zeros(n_agents, 2, space.dim, dtype=centre.dtype, device=centre.device)
-    u[:, :, free] = endpoint.transpose(1, 2)
-    natural = space.from_unconstrained(u.view(-1, space.dim)).view(n_agents, 2, -1)[..., free]
-    profiled = found.view(n_agents, k, 2).all(-1)
+    u[:, :, columns] = endpoint.transpose(1, 2)
+    natural = space.from_unconstrained(u.view(-1, space.dim)).view(n_agents, 2, -1)[..., columns]
+    profiled = found.view(n_agents, n_named, 2).all(-1)
     low, high = wald.low.clone(), wald.high.clone()
-    low[:, free] = torch.where(profiled, natural[:, 0], wald.low[:, free])
-    high[:, free] = torch.where(profiled, natural[:, 1], wald.high[:, free])
+    low[:, columns] = torch.where(profiled, natural[:, 0], wald.low[:, columns])
+    high[:, columns] = torch.where(profiled, natural[:, 1], wald.high[:, columns])
     flags = torch.zeros_like(wald.identified)
-    flags[:, free] = profiled
+    flags[:, columns] = profiled
     identified = torch.where(flags, narrow(space, low, high), wald.identified)
     return dataclasses.replace(wald, low=low, high=high, identified=identified, profiled=flags)
 

@@ -20,6 +20,7 @@ from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.objectives.marginal import (
     MOMENT_RULES,
+    check_mixture,
     marginal_filter,
     particle_log_likelihood,
 )
@@ -52,6 +53,11 @@ class InverseRationalLoss(LossModule):
             belief: ``"cubature"`` (sigma points; sees the policy bend within the belief's
             spread) or ``"linearised"`` (its tangent at the belief mean; cheaper, but one
             near-target step can cost a trial 100+ nats at the true θ).
+        components: with ``"marginal"``, how many Gaussians the outer filter's latent splits
+            into for each trial's last ``final_steps`` steps (1: one Gaussian throughout).
+            Where the agent stops, its belief given the actions is far from Gaussian and one
+            Gaussian mis-scores the stop by an amount that depends on θ.
+        final_steps: how many of each trial's last steps the mixture scores.
     """
 
     @dataclass
@@ -74,6 +80,8 @@ class InverseRationalLoss(LossModule):
         world: str = "known",
         method: str = "map",
         moments: str = "cubature",
+        components: int = 1,
+        final_steps: int = 4,
     ) -> None:
         super().__init__()
         if world not in ("known", "shared"):
@@ -89,6 +97,8 @@ class InverseRationalLoss(LossModule):
             raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
         self.method = method
         self.moments = moments
+        check_mixture(model, components, final_steps)
+        self.components, self.final_steps = components, final_steps
         self.model = model
         self.action_model = action_model
         self.theta_space = theta_space if theta_space is not None else model.theta_space
@@ -153,7 +163,8 @@ class InverseRationalLoss(LossModule):
         if self.method == "marginal":
             logp, *_, draws = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action.to(state.dtype),
-                target, task_theta, mask, generator, self.moments,
+                target, task_theta, mask, generator, self.moments, self.components,
+                self.final_steps,
             )  # fmt: skip
             total = torch.where(mask, logp, torch.zeros_like(logp)).sum(2)
             drawn = torch.where(mask, draws, torch.zeros_like(draws)).sum(2)
@@ -263,7 +274,8 @@ class InverseRationalLoss(LossModule):
         if self.method == "marginal":
             _, mean, cov, mean_cov, _ = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action, target,
-                task_theta, mask, moments=self.moments,
+                task_theta, mask, moments=self.moments, components=self.components,
+                final_steps=self.final_steps,
             )  # fmt: skip
         else:
             mean, cov = self.beliefs(theta_b, state, action, target)

@@ -16,6 +16,12 @@ linearised at the current estimate, as exact inverse LQG is in the linear case);
 outer covariance held at zero this reduces to the hard E-step (observations at their most
 probable value, ``method="map"``).
 
+Where the agent stops, the policy switches within the latent's spread and its posterior given
+the actions is far from Gaussian; ``components`` splits the latent into a Gaussian sum for
+each trial's last ``final_steps`` steps (measured on the 40-agent 2D recovery: the error in
+``log L(θ̂) − log L(θ*)`` against the particle filter falls from a mean 15.5 to 5.9 nats per
+agent with 16 components, for about six times the fitting time).
+
 :func:`particle_log_likelihood` estimates the same likelihood without the Gaussian outer
 approximation (a particle filter over whole simulated agents): not differentiable and far
 costlier, it is the reference that measures what the outer filter loses on given trials.
@@ -25,6 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 from torch.func import vjp, vmap
@@ -33,12 +40,15 @@ from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_upda
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel, gaussian_log_prob_of_draw
 
-__all__ = ["MOMENT_RULES", "marginal_filter", "particle_log_likelihood"]
+__all__ = ["MOMENT_RULES", "check_mixture", "marginal_filter", "particle_log_likelihood"]
 
 #: how the policy's output moments over the uncertain belief are computed
 MOMENT_RULES = ("cubature", "linearised")
 #: variance added to the outer covariance before its Cholesky factor (it starts at zero)
 _JITTER = 1e-10
+#: under a mixture, a component's mean sits at this fraction of the latent's spread (it keeps
+#: the rest of the covariance as its own)
+_SPLIT_SPREAD = 0.9
 #: how many particles (trials × particles) one chunk of :func:`particle_log_likelihood` holds
 _PARTICLE_BUDGET = 2**18
 
@@ -55,6 +65,8 @@ def marginal_filter(
     mask: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     moments: str = "cubature",
+    components: int = 1,
+    final_steps: int = 4,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
@@ -67,84 +79,192 @@ def marginal_filter(
         mask: the recorded steps ``[*B, T]``; a trial is filtered up to its last recorded step
             only (trials of a dataset differ in length), later outputs are zero.
         generator: if given, each step also scores an action drawn from its predictive
-            distribution (:func:`~irc_torchrl.modules.likelihood.gaussian_log_prob_of_draw`).
+            distribution (:func:`~irc_torchrl.modules.likelihood.gaussian_log_prob_of_draw`;
+            under a mixture, from its moment-matched Gaussian).
         moments: one of :data:`MOMENT_RULES`, how the policy's output over the uncertain
             belief is predicted (a cubature rule, or the tangent at the mean).
+        components: above 1, the outer Gaussian splits into that many narrower ones (a
+            Gaussian sum with the same mean and covariance) ``final_steps`` steps before each
+            trial's end: there the agent stops or creeps on, its belief given the actions is
+            far from Gaussian, and one Gaussian mis-scores the stop by a θ-dependent amount.
+        final_steps: how many of each trial's last steps the mixture scores.
 
     Returns:
         per-step ``log p(a_t | a_{<t}, s)`` ``[*B, T]``; the recovered belief mean
         ``E[z_t | a_{≤t}]`` ``[*B, T, ds]``; the agent's own belief covariance ``P_t``
-        ``[*B, T, ds, ds]``; the uncertainty of the recovered mean ``[*B, T, ds, ds]``; and
-        per step the log-probability of the drawn action ``[*B, T]`` (zeros without
-        ``generator``).
+        ``[*B, T, ds, ds]`` (under a mixture, its posterior average); the uncertainty of the
+        recovered mean ``[*B, T, ds, ds]``; and per step the log-probability of the drawn
+        action ``[*B, T]`` (zeros without ``generator``).
     """
     if moments not in MOMENT_RULES:
         raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
+    check_mixture(model, components, final_steps)
     batch, steps = state.shape[:-2], state.shape[-2]
     flat = batch.numel()
     ds = model.state_dim
     if mask is None:
         length = torch.full((flat,), steps, device=state.device)
     else:
-        recorded = torch.arange(1, steps + 1, device=state.device) * mask.reshape(flat, steps)
-        length = recorded.amax(-1)
-    # longest trials first: the trials still running at step t are a prefix of the rows
+        steps_in = torch.arange(1, steps + 1, device=state.device) * mask.reshape(flat, steps)
+        length = steps_in.amax(-1)
+    # longest trials first: the trials still running at any step are a prefix of the rows
     order = length.argsort(descending=True, stable=True)
-    running = length[order].unsqueeze(0) > torch.arange(steps, device=state.device)[:, None]
-    running = running.sum(-1).tolist()
+    length = length[order]
     theta, nuisance, target, task_theta = (
         x.reshape(flat, x.shape[-1])[order] for x in (theta, nuisance, target, task_theta)
     )
     state, action = state.reshape(flat, steps, ds)[order], action.reshape(flat, steps, -1)[order]
+    recorded = _Recorded(
+        model, action_model, _cubature if moments == "cubature" else _linearised,
+        theta, nuisance, state, action, target, task_theta, generator,
+    )  # fmt: skip
     mean, cov = model.initial_belief(state[:, 0], target, theta)
-    outer = torch.zeros_like(cov)  # the agent starts from a belief the experimenter knows
-    predict = _cubature if moments == "cubature" else _linearised
+    # the agent starts from a belief the experimenter knows
+    start = (mean.unsqueeze(1), cov.unsqueeze(1), torch.zeros_like(cov).unsqueeze(1))
+    split = length if components == 1 else torch.minimum(length, (length - final_steps).clamp(1))
+    outputs, carried = _outer_pass(
+        recorded, torch.zeros_like(split), split, *start, carry=components > 1
+    )
+    rest = length - split
+    mixed = int((rest > 0).sum())  # a prefix of the rows
+    if components > 1 and mixed:
+        mixture = _split(*(x[:mixed] for x in carried), components)
+        late, _ = _outer_pass(recorded, split, rest[:mixed], *mixture)
+        # the mixture's steps take their places after each trial's first ``split`` steps
+        later = torch.arange(late[0].shape[1], device=state.device)
+        row, offset = (later < rest.unsqueeze(-1)).nonzero(as_tuple=True)
+        outputs = [
+            head.index_put((row, split[row] + offset), tail[row, offset])
+            for head, tail in zip(outputs, late, strict=True)
+        ]
+    unsort = order.argsort()
+    return tuple(x[unsort].reshape(*batch, steps, *x.shape[2:]) for x in outputs)
+
+
+def check_mixture(model: TaskModel, components: int, final_steps: int) -> None:
+    """Refuse a mixture that cannot match the latent's covariance, or scores no step."""
+    if components != 1 and components <= model.state_dim:
+        raise ValueError(
+            f"components: expected 1 or more than the belief's {model.state_dim} dimensions, "
+            f"got {components}"
+        )
+    if final_steps < 1:
+        raise ValueError(f"final_steps: expected an integer ≥ 1, got {final_steps}")
+
+
+class _Recorded(NamedTuple):
+    """What every step of the outer filter reads: the task, the rule, the sorted trials."""
+
+    model: TaskModel
+    action_model: CensoredGaussianActionModel
+    predict: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    theta: torch.Tensor
+    nuisance: torch.Tensor
+    state: torch.Tensor
+    action: torch.Tensor
+    target: torch.Tensor
+    task_theta: torch.Tensor
+    generator: torch.Generator | None
+
+
+def _outer_pass(
+    recorded: _Recorded,
+    start: torch.Tensor,
+    count: torch.Tensor,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    outer: torch.Tensor,
+    carry: bool = False,
+) -> tuple[list[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None]:
+    """Filter ``count`` steps of each trial from step ``start`` (rows with ``count``
+    non-increasing), each trial's latent a mixture of ``M`` equally weighted Gaussians.
+
+    Args:
+        mean, cov, outer: per trial and component, the agent's belief mean and covariance
+            and the outer covariance of that mean, ``[n, M, ds(, ds)]``.
+        carry: also carry each trial's mixture on to the step after its last.
+
+    Returns:
+        the five per-step outputs of :func:`marginal_filter` at the steps after ``start``
+        (rows sorted, ``[n, T, ...]``), and with ``carry`` the carried mixture
+        (``[n, M, ...]``).
+    """
+    model, action_model, predict, theta, nuisance, state, action, target, task_theta, generator = (
+        recorded
+    )
+    n_rows, m = mean.shape[:2]
+    steps, ds = state.shape[1], state.shape[2]
+    running = [int(n) for n in (count.unsqueeze(-1) > torch.arange(int(count.max()))).sum(0)]
+    log_weight = torch.full((n_rows, m), -math.log(m), dtype=mean.dtype, device=mean.device)
+
+    def components(x: torch.Tensor) -> torch.Tensor:
+        return x if m == 1 else x.repeat_interleave(m, 0)
 
     def policy(z, p, tg, step, th):
         return action_model.actor(model.belief_features(z, p, tg, step, th))
 
     logps, means, covs, outers, draws = [], [], [], [], []
-    for t in range(steps):
-        n = running[t]
-        if n == 0:
-            break
-        mean, cov, outer = mean[:n], cov[:n], outer[:n]
-        step = torch.full((n, 1), t, dtype=torch.long, device=state.device)
-        predicted = predict(policy, mean, outer, cov, target[:n], step, theta[:n])
-        scored = model.scored_actions(action[:n, t], step)
-        logp, shift, outer, (m, var) = action_model.assimilate(
-            *predicted, outer, action[:n, t], nuisance[:n], scored
-        )
+    finished = [tuple(x[running[0] if running else 0 :] for x in (mean, cov, outer))]
+    for k, n in enumerate(running):
+        rows = torch.arange(n, device=state.device)
+        t = start[:n] + k
+        mean, cov, outer, log_weight = mean[:n], cov[:n], outer[:n], log_weight[:n]
+        z, p, o = (x.flatten(0, 1) for x in (mean, cov, outer))
+        step = t.unsqueeze(-1)
+        a_t, th = action[rows, t], theta[:n]
+        scored = model.scored_actions(a_t, step)
+        predicted = predict(policy, z, o, p, *map(components, (target[:n], step, th)))
+        logp, shift, o, drawn = action_model.assimilate(
+            *predicted, o, components(a_t), components(nuisance[:n]),
+            None if scored is None else components(scored),
+        )  # fmt: skip
+        z = z + shift
+        if m == 1:
+            logps.append(logp)
+            means.append(z)
+            covs.append(p)
+            outers.append(o)
+        else:
+            # the predictive is the mixture's; actions are drawn from its moments
+            weight = log_weight.exp().unsqueeze(-1)
+            a_mean, a_var = (x.view(n, m, -1) for x in drawn)
+            drawn_mean = (weight * a_mean).sum(1)
+            drawn = drawn_mean, (weight * (a_var + (a_mean - drawn_mean.unsqueeze(1)) ** 2)).sum(1)
+            joint = log_weight + logp.view(n, m)  # the weights are normalised: Σ exp = 1
+            logps.append(joint.logsumexp(-1))
+            log_weight = joint.log_softmax(-1)
+            weight = log_weight.exp()[..., None, None]
+            z_m, o_m = z.view(n, m, ds, 1), o.view(n, m, ds, ds)
+            recovered = (weight * z_m).sum(1)
+            spread = z_m - recovered.unsqueeze(1)
+            means.append(recovered.squeeze(-1))
+            covs.append((weight * cov).sum(1))
+            outers.append((weight * (o_m + spread @ spread.mT)).sum(1))
         if generator is not None:
-            draws.append(gaussian_log_prob_of_draw(m, var, generator, scored))
-        mean = mean + shift
-        logps.append(logp)
-        means.append(mean)
-        covs.append(cov)
-        outers.append(outer)
-        if t + 1 == steps or running[t + 1] == 0:
+            draws.append(gaussian_log_prob_of_draw(*drawn, generator, scored))
+        below = running[k + 1] if k + 1 < len(running) else 0
+        if not (below or carry):
             break
-        # the agent's filter, linearised at the recovered mean
-        a_t, th = action[:n, t], theta[:n]
-        jac_f = model.transition_jacobian(mean, a_t, th)
-        prior, prior_cov = ekf_predict(model, mean, cov, a_t, th)
-        gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, th)
-        residual = model.observe(state[:n, t + 1], th) - model.observe(prior, th)
-        mean, cov, a = joseph_update(prior, prior_cov, gain, jac_h, agent_noise, residual)
-        world_noise = model.observation_cov(state[:n, t + 1], task_theta[:n])
-        outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
-        outer = 0.5 * (outer + outer.mT)
-
-    unsort = order.argsort()
+        # the agent's filter, linearised at each component's recovered mean, to the next step
+        nxt = components(state[rows, (t + 1).clamp_max(steps - 1)])
+        carried = _propagate(
+            model, z, p, o, components(a_t), nxt, components(th), components(task_theta[:n])
+        )
+        mean, cov, outer = (x.view(n, m, *x.shape[1:]) for x in carried)
+        finished.append(tuple(x[below:] for x in (mean, cov, outer)))
 
     def stack(xs):
-        padded = [torch.cat([x, x.new_zeros(flat - len(x), *x.shape[1:])]) for x in xs]
+        padded = [torch.cat([x, x.new_zeros(n_rows - len(x), *x.shape[1:])]) for x in xs]
         padded += [padded[0].new_zeros(padded[0].shape)] * (steps - len(padded))
-        out = torch.stack(padded, 1)[unsort]
-        return out.reshape(*batch, steps, *out.shape[2:])
+        return torch.stack(padded, 1)
 
     draws = stack(draws) if draws else torch.zeros_like(stack(logps))
-    return stack(logps), stack(means), stack(covs), stack(outers), draws
+    carried = (
+        tuple(torch.cat(parts) for parts in zip(*reversed(finished), strict=True))
+        if carry
+        else None
+    )
+    return [stack(logps), stack(means), stack(covs), stack(outers), draws], carried
 
 
 @torch.no_grad()
@@ -258,6 +378,53 @@ def _particle_chunk(
         mean = torch.where(keep, moved[0], mean)
         cov = torch.where(keep.unsqueeze(-1), moved[1], cov)
     return total, ess
+
+
+def _propagate(
+    model: TaskModel,
+    mean: torch.Tensor,
+    cov: torch.Tensor,
+    outer: torch.Tensor,
+    action: torch.Tensor,
+    next_state: torch.Tensor,
+    theta: torch.Tensor,
+    task_theta: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The agent's filter to the next recorded state, linearised at the recovered mean, and the
+    outer covariance carried through it (the world's observation noise moves the mean)."""
+    jac_f = model.transition_jacobian(mean, action, theta)
+    prior, prior_cov = ekf_predict(model, mean, cov, action, theta)
+    gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, theta)
+    residual = model.observe(next_state, theta) - model.observe(prior, theta)
+    mean, cov, a = joseph_update(prior, prior_cov, gain, jac_h, agent_noise, residual)
+    world_noise = model.observation_cov(next_state, task_theta)
+    outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
+    return mean, cov, 0.5 * (outer + outer.mT)
+
+
+def _split(
+    mean: torch.Tensor, cov: torch.Tensor, outer: torch.Tensor, m: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One Gaussian latent per trial ``[n, 1, ...]`` as ``m`` equally weighted narrower ones
+    with the same mean and covariance: their means at :data:`_SPLIT_SPREAD` times whitened
+    quasi-random offsets of its spread, each keeping the rest of the covariance."""
+    n, _, ds = mean.shape
+    eye = torch.eye(ds, dtype=mean.dtype, device=mean.device)
+    root = torch.linalg.cholesky(outer[:, 0] + _JITTER * eye)
+    offsets = _whitened_normal(m, ds).to(mean)
+    means = mean + _SPLIT_SPREAD * (root.unsqueeze(1) @ offsets.unsqueeze(-1)).squeeze(-1)
+    kept = (1 - _SPLIT_SPREAD**2) * outer
+    return means, cov.expand(n, m, ds, ds), kept.expand(n, m, ds, ds)
+
+
+def _whitened_normal(m: int, d: int) -> torch.Tensor:
+    """``m`` fixed points in ``d`` dimensions with mean exactly 0 and covariance exactly I:
+    scrambled Sobol points through the normal quantile, centred and whitened."""
+    u = torch.quasirandom.SobolEngine(d, scramble=True, seed=0).draw(m, dtype=torch.float64)
+    x = torch.special.ndtri(u.clamp(1e-6, 1 - 1e-6))
+    x = x - x.mean(0)
+    root = torch.linalg.cholesky(x.mT @ x / m)
+    return torch.linalg.solve_triangular(root, x.mT, upper=False).mT
 
 
 def _linearised(
