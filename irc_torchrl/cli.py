@@ -204,6 +204,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
         "intervals (wald, or profile: where the profile likelihood falls 1.92 below its top), "
         "particles (e.g. 1000: check each fit against a particle filter's likelihood), "
+        "components (e.g. 16: marginal's belief as a Gaussian sum over trials' last 4 steps), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
     )
@@ -287,7 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
             "states and actions by the hard E-step (map) and with the agent's observations "
             "integrated out (marginal). Writes summary.json (coverage, errors, widths, belief "
             "agreement per method), config.yaml, trials/ and figures into --out. particles=1000 "
-            "also checks every fit against a particle filter's likelihood at θ̂ and θ*."
+            "also checks every fit against a particle filter's likelihood at θ̂ and θ*; "
+            "components=16 carries marginal's belief as 16 Gaussians through each trial's "
+            "last 4 steps."
         ),
     )
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")

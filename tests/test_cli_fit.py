@@ -202,6 +202,9 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["recover", "fit.covariance=robust"], "fit.covariance must be one of"),
         (["recover", "particles=-1"], "particles must be ≥ 0"),
         (["fit", "FILE", "particles=-5"], "particles must be ≥ 0"),
+        (["recover", "components=0"], "components: expected 1 or more than the belief's 5"),
+        (["fit", "FILE", "components=0"], "components must be positive"),
+        (["fit", "FILE", "components=4"], "components: expected 1 or more than the belief's 5"),
     ],
 )
 def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_path, capsys):

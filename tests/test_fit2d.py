@@ -166,3 +166,5 @@ def test_recover_config_yaml_equals_the_embedded_default_and_checks_keys():
         load_recovery2d_config(None, ["n_agent=3"])
     with pytest.raises(ValueError, match="motor_noise must be > 0"):
         load_recovery2d_config(None, ["motor_noise=0"])
+    with pytest.raises(ValueError, match="components: expected 1 or more than the belief's 5"):
+        load_recovery2d_config(None, ["components=3"])

@@ -356,8 +356,9 @@ def _fit_groups(
         for name in methods:
             start = time.perf_counter()
             loss = InverseRationalLoss(
-                model, action_model, theta_space=space, n_agents=len(members), method=name
-            ).to(device)
+                model, action_model, theta_space=space, n_agents=len(members), method=name,
+                components=config.components,
+            ).to(device)  # fmt: skip
             desc = f"fit {name}: {len(members)} recording(s) of {held.shape[1]} trials"
             with tqdm(total=config.max_iter, desc=desc, disable=not progress) as bar:
                 result = fit_theta(

@@ -35,6 +35,7 @@ from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import FeaturePolicy
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
+from irc_torchrl.objectives.marginal import check_mixture
 from irc_torchrl.plots import plot_belief_overhead, plot_belief_time, plot_recovery
 
 __all__ = [
@@ -71,6 +72,9 @@ class Recovery2DConfig:
     #: particles for checking each fit against a particle filter's likelihood at θ̂ and at
     #: θ* (0: no check; 1000 take about 25 s per agent of 100 trials on 2 cores, both points)
     particles: int = 0
+    #: with ``marginal``, Gaussians the outer filter's latent splits into for each trial's last
+    #: 4 steps (1: one throughout; 16 come closer to the particle filter, for ~6× the time)
+    components: int = 1
     #: intervals from the sandwich: both estimators approximate the likelihood, and the
     #: trials' scores vary more than the approximation's curvature says
     fit: FitConfig = field(
@@ -89,6 +93,7 @@ class Recovery2DConfig:
                 raise ValueError(f"config: {name} must be ≥ 1, got {value}")
         if self.particles < 0:
             raise ValueError(f"config: particles must be ≥ 0, got {self.particles}")
+        check_mixture(Firefly2DModel(), self.components, final_steps=4)
         if self.n_prior_agents < 0 or self.n_mistaken_agents < 0:
             raise ValueError("config: n_prior_agents and n_mistaken_agents must be ≥ 0")
         if self.n_prior_agents + self.n_mistaken_agents < 1:
@@ -190,7 +195,9 @@ def recover_firefly2d(
         "methods": {},
     }
     for method in config.method_list:
-        loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method=method)
+        loss = InverseRationalLoss(
+            model, action_model, n_agents=n_agents, method=method, components=config.components
+        )
         # after map, map's θ̂ joins the marginal's screened draws
         starts = fits["map"].theta_hat if "map" in fits else None
         begin = time.perf_counter()
