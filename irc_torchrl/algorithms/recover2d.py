@@ -35,7 +35,7 @@ from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import FeaturePolicy
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
-from irc_torchrl.objectives.marginal import check_mixture
+from irc_torchrl.objectives.marginal import FINAL_STEPS, check_mixture
 from irc_torchrl.plots import plot_belief_overhead, plot_belief_time, plot_recovery
 
 __all__ = [
@@ -93,7 +93,7 @@ class Recovery2DConfig:
                 raise ValueError(f"config: {name} must be ≥ 1, got {value}")
         if self.particles < 0:
             raise ValueError(f"config: particles must be ≥ 0, got {self.particles}")
-        check_mixture(Firefly2DModel(), self.components, final_steps=4)
+        check_mixture(Firefly2DModel(), self.components, FINAL_STEPS)
         if self.n_prior_agents < 0 or self.n_mistaken_agents < 0:
             raise ValueError("config: n_prior_agents and n_mistaken_agents must be ≥ 0")
         if self.n_prior_agents + self.n_mistaken_agents < 1:

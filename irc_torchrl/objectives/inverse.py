@@ -19,6 +19,7 @@ from torchrl.objectives import LossModule
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.objectives.marginal import (
+    FINAL_STEPS,
     MOMENT_RULES,
     check_mixture,
     marginal_filter,
@@ -81,7 +82,7 @@ class InverseRationalLoss(LossModule):
         method: str = "map",
         moments: str = "cubature",
         components: int = 1,
-        final_steps: int = 4,
+        final_steps: int = FINAL_STEPS,
     ) -> None:
         super().__init__()
         if world not in ("known", "shared"):

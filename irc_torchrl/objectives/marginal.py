@@ -40,12 +40,20 @@ from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_upda
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel, gaussian_log_prob_of_draw
 
-__all__ = ["MOMENT_RULES", "check_mixture", "marginal_filter", "particle_log_likelihood"]
+__all__ = [
+    "FINAL_STEPS",
+    "MOMENT_RULES",
+    "check_mixture",
+    "marginal_filter",
+    "particle_log_likelihood",
+]
 
 #: how the policy's output moments over the uncertain belief are computed
 MOMENT_RULES = ("cubature", "linearised")
 #: variance added to the outer covariance before its Cholesky factor (it starts at zero)
 _JITTER = 1e-10
+#: how many of each trial's last steps a mixture scores by default
+FINAL_STEPS = 4
 #: under a mixture, a component's mean sits at this fraction of the latent's spread (it keeps
 #: the rest of the covariance as its own)
 _SPLIT_SPREAD = 0.9
@@ -66,7 +74,7 @@ def marginal_filter(
     generator: torch.Generator | None = None,
     moments: str = "cubature",
     components: int = 1,
-    final_steps: int = 4,
+    final_steps: int = FINAL_STEPS,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
