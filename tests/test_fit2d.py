@@ -3,6 +3,8 @@
 Fixed seeds throughout; tolerances are stated where they are asserted.
 """
 
+import itertools
+
 import pytest
 import torch
 
@@ -95,9 +97,7 @@ def test_the_particle_check_finds_the_hard_e_step_far_from_the_likelihood(recove
     assert check["map"]["median_log_likelihood_ratio"] < 0
 
 
-def test_a_gaussian_sum_over_the_last_steps_comes_closer_to_the_particle_filter(
-    recovery, shipped
-):
+def test_a_gaussian_sum_over_the_last_steps_comes_closer_to_the_particle_filter(recovery, shipped):
     # where the shipped agent stops, its belief given the actions is far from Gaussian: split
     # into 16 Gaussians for each trial's last 4 steps, the outer filter's log-likelihood at θ*
     # comes closer to the particle filter's (1000 particles; measured |gap| summed over the 3
@@ -118,6 +118,54 @@ def test_a_gaussian_sum_over_the_last_steps_comes_closer_to_the_particle_filter(
             approximate = loss.log_likelihood(truth, motor, held, per_trial=True)
         gap[components] = (particles - approximate).sum(1).abs().sum()
     assert gap[16] < 0.5 * gap[1], gap
+
+
+@pytest.mark.parametrize("method, components", [("map", 1), ("marginal", 1), ("marginal", 16)])
+def test_likelihood_and_gradient_are_finite_at_the_edges_of_theta_and_motor_noise(
+    shipped, method, components
+):
+    # θ at the corners of its space (noises near 0 or at their maximum, gains at their bounds)
+    # and a nearly noise-free or very noisy motor: a fit's line search may step anywhere there.
+    # A near-noise-free motor once drove the outer covariance indefinite (Cholesky error) and
+    # a clipped action thousands of sds out made the tail's variance factor exceed 1 (NaN)
+    actor, model, action_model = shipped
+    space = model.theta_space
+    trials, _, _ = simulate_recovery_agents(
+        model, actor, Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=0, n_trials=12)
+    )
+    free = space.free_mask
+    corners = torch.tensor(list(itertools.product([-1.0, 1.0], repeat=int(free.sum()))))
+    corners = corners[torch.randperm(len(corners), generator=torch.Generator().manual_seed(0))[:6]]
+    box = torch.zeros(len(corners), space.dim, dtype=torch.float64)
+    box[:, free] = 0.999999 * corners.double()
+    theta = space.default().double().repeat(2 * len(corners), 1)
+    theta[:, free] = space.denormalise(box).repeat(2, 1)[:, free]
+    motor = torch.tensor([-10.0, 2.0], dtype=torch.float64).repeat_interleave(len(corners))
+    n = theta.shape[0]
+    held = trials.select(*RECORDED).expand(n, *trials.shape[1:]).clone()
+    loss = InverseRationalLoss(
+        model, action_model, n_agents=n, method=method, components=components
+    )
+    x = torch.cat([space.to_unconstrained(theta)[:, free], motor[:, None].expand(n, 2)], -1)
+    x.requires_grad_(True)
+    value = loss.log_likelihood(loss.theta(x[:, : int(free.sum())]), x[:, -2:], held)
+    (grad,) = torch.autograd.grad(value.sum(), x)
+    assert torch.isfinite(value).all() and torch.isfinite(grad).all(), (value, grad)
+
+
+def test_the_outer_covariance_stays_positive_under_a_nearly_noise_free_motor(shipped):
+    # each action's update subtracts from the covariance the cubature points spanned; taken
+    # from the unloaded one it went negative (-1.8e-11 here) and, noise-free enough, overflowed
+    actor, model, action_model = shipped
+    config = Recovery2DConfig(n_prior_agents=2, n_mistaken_agents=1, n_trials=30, seed=3)
+    trials, truth, _ = simulate_recovery_agents(model, actor, config)
+    held = trials.select(*RECORDED)
+    loss = InverseRationalLoss(model, action_model, n_agents=3, method="marginal")
+    motor = torch.full((3, 2), -6.0, dtype=torch.float64)
+    with torch.no_grad():
+        beliefs = loss.recovered_beliefs(truth.double(), motor, held)
+    spread = beliefs["belief", "mean_cov"][held["mask"]].double()
+    assert torch.linalg.eigvalsh(spread)[:, 0].min() >= 0
 
 
 def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch):

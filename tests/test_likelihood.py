@@ -131,3 +131,37 @@ def test_a_lapse_keeps_an_unexplained_action_from_moving_the_belief():
         moved["robust", "typical"], moved["plain", "typical"], rtol=0.02, atol=0
     )
     assert moved["robust", "wild"] < 0.05 * moved["plain", "wild"], moved
+
+
+@pytest.mark.parametrize("sds_out", [3.0, 40.0, 6.6e3])
+def test_an_action_clipped_far_in_the_tail_conditions_the_input_as_the_tail_says(sds_out):
+    """A clipped action ``sds_out`` predictive sds beyond the predicted mean: the input's
+    variance along the action shrinks by the truncated normal's factor 1 - λ(λ - α)
+    (λ = φ(α)/Φ(-α); for large α, λ - α = 1/α - 2/α³ + ...), stays positive, and the log
+    probability is the tail's. Thousands of sds out the direct exp(-α²/2 - log Φ(-α)) gave a
+    factor past 1: a negative variance, then NaN."""
+    dz, cov_y, noise = 2, 1e-6, 1e-10
+    cov = cov_y * torch.eye(dz, dtype=torch.float64)
+    cross = torch.zeros(dz, 2, dtype=torch.float64)
+    cross[0, 0] = cov_y  # y_0 = z_0; y_1 does not depend on z
+    cov_action = torch.diag(torch.tensor([cov_y, cov_y], dtype=torch.float64))
+    nuisance = torch.full((2,), 0.5 * math.log(noise), dtype=torch.float64)
+    alpha = torch.tensor(sds_out, dtype=torch.float64)
+    std = math.sqrt(cov_y + noise)
+    mean = torch.tensor([1.0 - sds_out * std, 0.0], dtype=torch.float64)
+    action = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    logp, _, post, _ = _model().assimilate(mean, cross, cov_action, cov, action, nuisance)
+    if sds_out < 8:
+        tail_mass = 0.5 * math.erfc(sds_out / 2**0.5)
+        mills = math.exp(-0.5 * sds_out**2) / math.sqrt(2 * math.pi) / tail_mass
+    else:  # where doubles cannot hold Φ(-α) directly: the asymptotic series
+        mills = sds_out + 1 / sds_out - 2 / sds_out**3 + 10 / sds_out**5 - 74 / sds_out**7
+    factor = 1 - mills * (mills - sds_out)  # the variance left, as a fraction of Var(y)
+    kept = cov_y - cov_y**2 / (cov_y + noise) * (1 - factor)
+    torch.testing.assert_close(
+        post[0, 0], torch.tensor(kept, dtype=torch.float64), rtol=1e-6, atol=0
+    )
+    assert post[0, 0] > 0 and torch.isfinite(logp)
+    interior = -0.5 * math.log(2 * math.pi * (cov_y + noise))  # the second action, at its mean
+    tail = torch.special.log_ndtr(-alpha)
+    torch.testing.assert_close(logp, tail + interior, rtol=1e-9, atol=0)

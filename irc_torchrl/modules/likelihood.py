@@ -77,6 +77,17 @@ class BoltzmannActionModel(nn.Module):
         return logp.gather(-1, draw.view(*logp.shape[:-1], 1)).squeeze(-1)
 
 
+def _mills_ratio(alpha: torch.Tensor) -> torch.Tensor:
+    """``φ(α) / Φ(-α)``, accurate for every ``α``: beyond the mean through ``erfcx``, since
+    ``exp(-α²/2 - log Φ(-α))`` loses the digits that the tail's variance factor
+    ``ratio · (ratio - α) ∈ (0, 1)`` needs once ``α`` is in the thousands."""
+    inside = alpha.clamp_max(0)  # both branches finite, so neither poisons the gradient
+    log_tail = torch.special.log_ndtr(-inside)
+    near = torch.exp(-0.5 * inside**2 - 0.5 * math.log(2 * math.pi) - log_tail)
+    far = math.sqrt(2 / math.pi) / torch.special.erfcx(alpha.clamp_min(0) / math.sqrt(2))
+    return torch.where(alpha > 0, far, near)
+
+
 class CensoredGaussianActionModel(nn.Module):
     """Continuous actions: the actor's output plus Gaussian motor noise, clipped to the bounds.
 
@@ -221,7 +232,7 @@ class CensoredGaussianActionModel(nn.Module):
             sign = torch.where(lower, -torch.ones_like(m), torch.ones_like(m))
             alpha = torch.where(lower, m - low[i], high[i] - m) / std
             tail = torch.special.log_ndtr(-alpha)
-            ratio = torch.exp(-0.5 * alpha**2 - 0.5 * math.log(2 * math.pi) - tail)
+            ratio = _mills_ratio(alpha)
             clipped = upper | lower
             keep = torch.ones_like(m) if scored is None else scored[..., i].to(m.dtype)
             step_logp, weight = self._mix_lapse(
@@ -229,7 +240,8 @@ class CensoredGaussianActionModel(nn.Module):
             )
             logp = logp + keep * step_logp
             moved = keep * torch.where(clipped, sign * std * ratio, a - m) / var
-            shrink = keep * torch.where(clipped, ratio * (ratio - alpha), torch.ones_like(m)) / var
+            truncated = (ratio * (ratio - alpha)).clamp(0, 1)  # the variance a tail removes
+            shrink = keep * torch.where(clipped, truncated, torch.ones_like(m)) / var
             # a mixture of the conditioned and the unconditioned (lapse) posterior
             shrink = weight * shrink - weight * (1 - weight) * moved**2
             moved = (weight * moved).unsqueeze(-1)

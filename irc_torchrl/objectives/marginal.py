@@ -165,7 +165,7 @@ class _Recorded(NamedTuple):
 
     model: TaskModel
     action_model: CensoredGaussianActionModel
-    predict: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    predict: Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
     theta: torch.Tensor
     nuisance: torch.Tensor
     state: torch.Tensor
@@ -221,7 +221,7 @@ def _outer_pass(
         step = t.unsqueeze(-1)
         a_t, th = action[rows, t], theta[:n]
         scored = model.scored_actions(a_t, step)
-        predicted = predict(policy, z, o, p, *map(components, (target[:n], step, th)))
+        *predicted, o = predict(policy, z, o, p, *map(components, (target[:n], step, th)))
         logp, shift, o, drawn = action_model.assimilate(
             *predicted, o, components(a_t), components(nuisance[:n]),
             None if scored is None else components(scored),
@@ -417,12 +417,28 @@ def _split(
     with the same mean and covariance: their means at :data:`_SPLIT_SPREAD` times whitened
     quasi-random offsets of its spread, each keeping the rest of the covariance."""
     n, _, ds = mean.shape
-    eye = torch.eye(ds, dtype=mean.dtype, device=mean.device)
-    root = torch.linalg.cholesky(outer[:, 0] + _JITTER * eye)
+    root = _covariance_root(outer[:, 0])
     offsets = _whitened_normal(m, ds).to(mean)
     means = mean + _SPLIT_SPREAD * (root.unsqueeze(1) @ offsets.unsqueeze(-1)).squeeze(-1)
     kept = (1 - _SPLIT_SPREAD**2) * outer
     return means, cov.expand(n, m, ds, ds), kept.expand(n, m, ds, ds)
+
+
+def _covariance_root(cov: torch.Tensor) -> torch.Tensor:
+    """A lower-triangular ``L`` with ``L Lᵀ ≈ cov``, also where round-off left ``cov`` slightly
+    indefinite: an action nearly noise-free in the latent (tiny motor noise) conditions the
+    outer covariance to rank deficiency, and those rows are loaded just past their lowest
+    eigenvalue (a constant shift, so the gradient still flows through the factor)."""
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    root, info = torch.linalg.cholesky_ex(cov + _JITTER * eye)
+    failed = info > 0
+    if failed.any():
+        low = torch.linalg.eigvalsh(cov[failed].detach())[..., 0]
+        scale = cov[failed].detach().diagonal(dim1=-2, dim2=-1).amax(-1)
+        shift = _JITTER + (-low).clamp_min(0) + 1e-12 * scale
+        loaded = cov[failed] + 2 * shift[..., None, None] * eye
+        root = root.masked_scatter(failed[..., None, None], torch.linalg.cholesky(loaded))
+    return root
 
 
 def _whitened_normal(m: int, d: int) -> torch.Tensor:
@@ -437,33 +453,36 @@ def _whitened_normal(m: int, d: int) -> torch.Tensor:
 
 def _linearised(
     policy: Callable[..., torch.Tensor], z: torch.Tensor, outer: torch.Tensor, *args: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Moments of ``π`` over ``N(z, outer)``, with the policy linearised at the mean ``z``."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Moments of ``π`` over ``N(z, outer)``, with the policy linearised at the mean ``z``
+    (and ``outer`` itself, the covariance they are exact for)."""
     out, jac = _rowwise_jacobian(policy, z, *args)
     cross = outer @ jac.mT
-    return out, cross, jac @ cross
+    return out, cross, jac @ cross, outer
 
 
 def _cubature(
     policy: Callable[..., torch.Tensor], z: torch.Tensor, outer: torch.Tensor, *args: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Moments of ``π`` over ``N(z, outer)``: the mean, the covariance with the latent and the
     covariance of ``π``, by the spherical cubature rule (2 dz points at ±√dz standard
-    deviations).
+    deviations); and the covariance the points span (``outer`` loaded by the factor's jitter),
+    from which the action's update must subtract so that the outer covariance stays positive
+    (subtracted from the unloaded one, a nearly noise-free action drove it negative and on to
+    overflow within a trial).
 
     Unlike the linearisation, it sees how the policy bends within the belief's spread: near
     the target the steering flips with the believed bearing, and a tangent at the mean
     predicts the action with a confidence the agent's own uncertainty does not support.
     """
     n, dz = z.shape
-    eye = torch.eye(dz, dtype=z.dtype, device=z.device)
-    root = torch.linalg.cholesky(outer + _JITTER * eye)
+    root = _covariance_root(outer)
     offsets = math.sqrt(dz) * torch.cat([root.mT, -root.mT], 1)  # [n, 2 dz, dz]
     points = (z.unsqueeze(1) + offsets).reshape(n * 2 * dz, dz)
     out = policy(points, *(a.repeat_interleave(2 * dz, 0) for a in args)).view(n, 2 * dz, -1)
     mean = out.mean(1)
     spread = out - mean.unsqueeze(1)
-    return mean, offsets.mT @ spread / (2 * dz), spread.mT @ spread / (2 * dz)
+    return mean, offsets.mT @ spread / (2 * dz), spread.mT @ spread / (2 * dz), root @ root.mT
 
 
 def _rowwise_jacobian(
