@@ -46,6 +46,9 @@ def test_shipped_yaml_equals_the_embedded_default():
         ("theta_fixed={g_v: 9.0}", "theta_fixed: fixed g_v=9.0 outside its range"),
         ("ddpg.n_env=3", "unknown key 'ddpg.n_env'; valid keys: .*ddpg.n_envs"),
         ("ddpg.bc_weight=-1", "ddpg.bc_weight must be ≥ 0"),
+        ("ddpg.loss=sac", "ddpg.loss must be 'ddpg' or 'td3'"),
+        ("ddpg.policy_delay=0", "ddpg.policy_delay must be positive"),
+        ("ddpg.noise_clip=-0.1", "ddpg.noise_clip must be ≥ 0"),
     ],
 )
 def test_bad_config_is_a_clear_error(override, message):
@@ -112,6 +115,30 @@ def test_behaviour_cloning_term_pulls_the_actor_towards_the_controller(tmp_path)
 
     near, far = distance(held), distance(plain)
     assert near < 0.7 * far, (near, far)
+
+
+def test_td3_trains_twin_critics_and_moves_the_actor_only_every_policy_delay_steps(tmp_path):
+    """With ``ddpg.loss=td3`` the checkpoint holds two distinct critics (the first is what
+    ``load_ensemble_critic`` returns); with a delay longer than the run the actor never moves
+    from its initial weights, with a delay of 2 it does."""
+    fast = ("ddpg.loss=td3", "ddpg.clone_updates=0", "ddpg.lr_actor=0.01")
+    runs = {
+        delay: train_ensemble(
+            tiny(*fast, f"ddpg.policy_delay={delay}"), out=tmp_path / str(delay), progress=False
+        )
+        for delay in (2, 10**6)
+    }
+    torch.manual_seed(runs[2].config.seed)
+    initial = make_actor(runs[2].model, [16, 16]).state_dict()
+    for delay, result in runs.items():
+        ckpt = torch.load(result.checkpoint, weights_only=True)
+        moved = any(not torch.equal(v, initial[k]) for k, v in ckpt["actor"].items())
+        assert moved == (delay == 2), delay
+        twins = {k: v for k, v in ckpt["loss"].items() if k.startswith("qvalue_network_params.")}
+        assert all(v.shape[0] == 2 and not torch.equal(v[0], v[1]) for v in twins.values())
+        critic, _, _ = load_ensemble_critic(result.checkpoint)
+        for name, value in critic.state_dict().items():
+            assert torch.equal(value, twins[f"qvalue_network_params.{name}"][0]), name
 
 
 def test_tiny_training_is_deterministic_for_a_seed():
