@@ -527,11 +527,11 @@ def _train(
             sample = buffer.sample()
             losses = loss(sample)
             total = losses[value_key]
-            if (updates + 1) % d.policy_delay == 0:  # after every policy_delay critic steps
+            if (updates + 1) % d.policy_delay == 0:  # the actor moves every policy_delay steps
                 total = total + losses["loss_actor"]
-            weight = d.bc_weight * (max(0.0, 1.0 - updates / d.bc_updates) if d.bc_updates else 1.0)
-            if teacher is not None and weight > 0:
-                total = total + weight * _clone_loss(loss.actor_network, teacher, sample)
+                weight = d.bc_weight * (1.0 - updates / d.bc_updates if d.bc_updates else 1.0)
+                if teacher is not None and weight > 0:
+                    total = total + weight * _clone_loss(loss.actor_network, teacher, sample)
             total.backward()
             if d.max_grad_norm > 0:
                 for group in (opt_actor, opt_critic):
