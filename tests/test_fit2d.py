@@ -36,14 +36,20 @@ def shipped():
     return actor, model, CensoredGaussianActionModel(FeaturePolicy(actor), low, high)
 
 
-def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped):
-    # θ̂ is a maximum of the likelihood, so it must score the data at least as well as θ*
-    trials, summary, fits = recovery
-    _, model, action_model = shipped
-    held = trials.select(*RECORDED)
+@pytest.fixture(scope="module")
+def at_truth(recovery):
+    """The recovery's recorded trials, each agent's θ* and its motor noise (log 0.1)."""
+    trials = recovery[0]
     truth = trials["theta"][:, 0, 0].double()
     motor = torch.full((truth.shape[0], 2), 0.1, dtype=torch.float64).log()
-    for method, result in fits.items():
+    return trials.select(*RECORDED), truth, motor
+
+
+def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, at_truth):
+    # θ̂ is a maximum of the likelihood, so it must score the data at least as well as θ*
+    _, model, action_model = shipped
+    held, truth, motor = at_truth
+    for method, result in recovery[2].items():
         loss = InverseRationalLoss(model, action_model, n_agents=truth.shape[0], method=method)
         with torch.no_grad():
             at_truth = loss.log_likelihood(truth, motor, held)
@@ -97,16 +103,13 @@ def test_the_particle_check_finds_the_hard_e_step_far_from_the_likelihood(recove
     assert check["map"]["median_log_likelihood_ratio"] < 0
 
 
-def test_a_gaussian_sum_over_the_last_steps_comes_closer_to_the_particle_filter(recovery, shipped):
+def test_a_gaussian_sum_over_the_last_steps_comes_closer_to_the_particle_filter(shipped, at_truth):
     # where the shipped agent stops, its belief given the actions is far from Gaussian: split
     # into 16 Gaussians for each trial's last 4 steps, the outer filter's log-likelihood at θ*
     # comes closer to the particle filter's (1000 particles; measured |gap| summed over the 3
     # agents 24.5 nats for one Gaussian, 8.4 for the mixture; asserted: half)
-    trials, _, _ = recovery
     _, model, action_model = shipped
-    held = trials.select(*RECORDED)
-    truth = trials["theta"][:, 0, 0].double()
-    motor = torch.full((truth.shape[0], 2), 0.1, dtype=torch.float64).log()
+    held, truth, motor = at_truth
     gap = {}
     for components in (1, 16):
         loss = InverseRationalLoss(
