@@ -415,7 +415,7 @@ def _train(
         annealing_num_steps=d.anneal_frames,
     )
     explore = TensorDictSequential(actor, noise)
-    loss, critic_params, value_key = _make_loss(model, actor, critic, d)
+    loss, critic_params, value_key, value_loss = _make_loss(model, actor, critic, d)
     loss.make_value_estimator(ValueEstimators.TD0, gamma=d.gamma)
     target_update = SoftUpdate(loss, tau=d.tau)
     opt_actor = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=d.lr_actor)
@@ -509,7 +509,7 @@ def _train(
             frames += batch.numel()
             _extend(buffer, warmup_steps, batch)
         warmup_collector.shutdown()
-        _pretrain(loss, value_key, teacher, buffer, opt_actor, opt_critic, target_update, d)
+        _pretrain(loss, value_loss, teacher, buffer, opt_actor, opt_critic, target_update, d)
         evaluate()  # the clone is a candidate too: DDPG may degrade it before it improves on it
     random_start = resume is None and d.warmup_policy == "random"
     collector = _make_collector(config, model, explore, env_seed, remaining, random_start)
@@ -578,9 +578,10 @@ def _train(
 
 def _make_loss(
     model: Firefly2DModel, actor: TensorDictSequential, critic: TensorDictSequential, d: DDPGConfig
-) -> tuple[LossModule, TensorDictBase, str]:
+) -> tuple[LossModule, TensorDictBase, str, Callable[[TensorDictBase], tuple]]:
     """TorchRL's DDPG or TD3 loss over ``actor`` and ``critic``: the loss, the critic's
-    parameters (TD3's twin copies stacked) and the key of the critic's loss in its output."""
+    parameters (TD3's twin copies stacked), the key of the critic's loss in its output, and
+    the loss's method that computes that term alone (for critic-only steps)."""
     if d.loss == "td3":
         loss = TD3Loss(
             actor,
@@ -590,14 +591,14 @@ def _make_loss(
             policy_noise=d.policy_noise,
             noise_clip=d.noise_clip,
         )
-        return loss, loss.qvalue_network_params, "loss_qvalue"
+        return loss, loss.qvalue_network_params, "loss_qvalue", loss.value_loss
     loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
-    return loss, loss.value_network_params, "loss_value"
+    return loss, loss.value_network_params, "loss_value", loss.loss_value
 
 
 def _pretrain(
     loss: LossModule,
-    value_key: str,
+    value_loss: Callable[[TensorDictBase], tuple],
     teacher: TensorDictModuleBase,
     buffer: TensorDictReplayBuffer,
     opt_actor: torch.optim.Optimizer,
@@ -614,7 +615,7 @@ def _pretrain(
         warnings.simplefilter("ignore", UserWarning)
         target_update.init_()
     for _ in range(d.critic_updates):
-        loss(buffer.sample())[value_key].backward()
+        value_loss(buffer.sample())[0].backward()
         opt_critic.step()
         opt_critic.zero_grad()
         target_update.step()
