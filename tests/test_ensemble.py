@@ -96,6 +96,16 @@ def test_ddpg_loss_and_soft_update_move_the_target_networks():
     assert isinstance(losses, TensorDict)
 
 
+def _distance_from_controller(result) -> torch.Tensor:
+    """Mean squared distance of a run's last actor from the pursuit controller's actions."""
+    env = make_train_env(result.model, 64, seed=9)
+    beliefs = env.rollout(6, BeliefPursuit(result.model), break_when_any_done=False)
+    teacher = BeliefPursuit(result.model)(beliefs.clone())["action"].clamp(-0.97, 0.97)
+    actor = make_actor(result.model, [16, 16])
+    actor.load_state_dict(torch.load(result.checkpoint, weights_only=True)["actor"])
+    return (actor(beliefs.clone())["action"] - teacher).pow(2).mean()
+
+
 def test_behaviour_cloning_term_pulls_the_actor_towards_the_controller(tmp_path):
     """With the TD3+BC term the DDPG updates also imitate the pursuit controller: the final
     actor stays closer to it than the same run without the term."""
@@ -104,17 +114,32 @@ def test_behaviour_cloning_term_pulls_the_actor_towards_the_controller(tmp_path)
     plain = train_ensemble(plain, out=tmp_path / "a", progress=False, seed=5)
     bc = tiny(*fast, "ddpg.bc_weight=50")
     held = train_ensemble(bc, out=tmp_path / "b", progress=False, seed=5)
-    env = make_train_env(plain.model, 64, seed=9)
-    beliefs = env.rollout(6, BeliefPursuit(plain.model), break_when_any_done=False)
-    teacher = BeliefPursuit(plain.model)(beliefs.clone())["action"].clamp(-0.97, 0.97)
-
-    def distance(result):
-        actor = make_actor(result.model, [16, 16])
-        actor.load_state_dict(torch.load(result.checkpoint, weights_only=True)["actor"])
-        return (actor(beliefs.clone())["action"] - teacher).pow(2).mean()
-
-    near, far = distance(held), distance(plain)
+    near, far = _distance_from_controller(held), _distance_from_controller(plain)
     assert near < 0.7 * far, (near, far)
+
+
+def test_cloning_runs_at_lr_clone_and_ddpg_at_lr_actor(tmp_path):
+    """The behaviour clone moves the actor at ``lr_clone``; DDPG then goes on at ``lr_actor``
+    (the optimiser's rate in the checkpoint), so a nearly frozen DDPG keeps what was cloned."""
+    runs = {
+        lr: train_ensemble(
+            tiny(
+                "logger=none",
+                "ddpg.clone_updates=100",
+                "ddpg.lr_actor=1e-12",
+                f"ddpg.lr_clone={lr}",
+            ),
+            out=tmp_path / str(lr),
+            progress=False,
+            seed=5,
+        )
+        for lr in (1e-2, 1e-12)
+    }
+    for result in runs.values():
+        ckpt = torch.load(result.checkpoint, weights_only=True)
+        assert ckpt["optimiser_actor"]["param_groups"][0]["lr"] == 1e-12
+    cloned, frozen = (_distance_from_controller(runs[lr]) for lr in (1e-2, 1e-12))
+    assert cloned < 0.5 * frozen, (cloned, frozen)
 
 
 def test_td3_trains_twin_critics_and_moves_the_actor_only_every_policy_delay_steps(tmp_path):
