@@ -16,7 +16,7 @@ from tqdm.auto import tqdm
 
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.qiteration import train_factorised_q
-from irc_torchrl.algorithms.recovery import recover_agents
+from irc_torchrl.algorithms.recovery import format_parameters, recover_agents
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.config import Firefly1DConfig, config_to_dict
 from irc_torchrl.data.files import write_json, write_text
@@ -113,15 +113,7 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
 
 def format_summary(summary: dict) -> str:
     """A readable table of the recovery (printed at the end of ``irc demo``)."""
-    lines = [
-        f"{'parameter':<14}{'coverage':>10}{'median |err|':>14}"
-        f"{'median rel err':>16}{'median CI width':>17}"
-    ]
-    for name, s in summary["parameters"].items():
-        lines.append(
-            f"{name:<14}{s['coverage']:>10.2f}{s['median_abs_error']:>14.4f}"
-            f"{s['median_rel_error']:>16.4f}{s['median_ci_width']:>17.4f}"
-        )
+    lines = format_parameters(summary["parameters"])
     t = summary["timings"]
     lines.append(
         f"DP ratio {summary['dp_ratio']:.4f} (min per θ {summary['dp_ratio_min_per_theta']:.3f}); "

@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
-from irc_torchrl.algorithms.recovery import score_recovery
+from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import FitConfig, config_to_dict
@@ -356,12 +356,5 @@ def format_recovery(summary: dict) -> str:
                 f"{check['median_gap_at_theta_true']:.1f} at θ* (medians); "
                 f"{check['more_likely_at_theta_true']} agents' θ* more likely than θ̂"
             )
-        lines.append(
-            f"  {'parameter':<14}{'coverage':>9}{'median rel err':>16}{'median CI width':>17}"
-        )
-        for name, s in entry["parameters"].items():
-            lines.append(
-                f"  {name:<14}{s['coverage']:>9.2f}{s['median_rel_error']:>16.3f}"
-                f"{s['median_ci_width']:>17.4f}"
-            )
+        lines += [f"  {row}" for row in format_parameters(entry["parameters"])]
     return "\n".join(lines)

@@ -10,6 +10,7 @@ import statistics
 import time
 from collections.abc import Callable
 
+import scipy.stats
 import torch
 from tensordict import TensorDict
 
@@ -20,7 +21,7 @@ from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-__all__ = ["recover_agents", "score_recovery"]
+__all__ = ["coverage_interval", "format_parameters", "recover_agents", "score_recovery"]
 
 
 def recover_agents(
@@ -66,10 +67,38 @@ def recover_agents(
     return trials, summary, result
 
 
+def coverage_interval(covered: int, n: int, level: float = 0.95) -> list[float]:
+    """Clopper-Pearson interval of a coverage measured as ``covered`` of ``n`` agents.
+
+    Over 40 agents a calibrated 95% interval covers 36 to 40 times in 95% of experiments, so a
+    coverage is judged by whether this interval holds the nominal level, not by its point value.
+    """
+    if not 0 <= covered <= n or n < 1:
+        raise ValueError(f"covered: expected a count in [0, n] with n ≥ 1, got {covered} of {n}")
+    tail = (1 - level) / 2
+    low = float(scipy.stats.beta.ppf(tail, covered, n - covered + 1)) if covered else 0.0
+    high = float(scipy.stats.beta.ppf(1 - tail, covered + 1, n - covered)) if covered < n else 1.0
+    return [low, high]
+
+
+def _z_calibration(z: torch.Tensor) -> dict[str, float | None]:
+    """Median and robust sd (1.4826 × MAD) of z-scores: bias and width calibration that one
+    unconverged fit with a tiny std cannot swamp, as it does a mean and sd."""
+    if not len(z):
+        return {"z_median": None, "z_robust_sd": None}
+    median = torch.quantile(z, 0.5)
+    return {
+        "z_median": float(median),
+        "z_robust_sd": float(1.4826 * torch.quantile((z - median).abs(), 0.5)),
+    }
+
+
 def score_recovery(
     free: list[str], names: list[str], theta_true: torch.Tensor, result: FitResult
 ) -> dict:
-    """Per-agent entries and per-parameter coverage, errors and interval widths."""
+    """Per-agent entries and per-parameter coverage (with its Clopper-Pearson interval),
+    errors, interval widths and the median and robust sd of the z-scores ``(θ̂ − θ*) / std``
+    (0 and 1 for honest intervals; a robust sd of 1.4 says the intervals are 1.4× too narrow)."""
     agents = []
     for i in range(theta_true.shape[0]):
         entry = result.agent(i)
@@ -82,8 +111,12 @@ def score_recovery(
         truth, hat = theta_true[:, j].double(), result.theta_hat[:, j]
         low, high = result.intervals.low[:, j], result.intervals.high[:, j]
         error = (hat - truth).abs()
+        covered = int(((low <= truth) & (truth <= high)).sum())
+        z = ((hat - truth) / result.intervals.std[:, j].double())[result.intervals.std[:, j] > 0]
         parameters[name] = {
-            "coverage": float(((low <= truth) & (truth <= high)).double().mean()),
+            "coverage": covered / len(truth),
+            "coverage_ci": coverage_interval(covered, len(truth)),
+            **_z_calibration(z),
             "median_abs_error": statistics.median(error.tolist()),
             "median_rel_error": statistics.median((error / truth.abs().clamp_min(1e-12)).tolist()),
             "median_ci_width": statistics.median((high - low).tolist()),
@@ -91,3 +124,24 @@ def score_recovery(
             "profiled_fraction": float(result.intervals.profiled[:, j].double().mean()),
         }
     return {"agents": agents, "parameters": parameters}
+
+
+def format_parameters(parameters: dict) -> list[str]:
+    """Table rows of :func:`score_recovery`'s per-parameter scores, a header first."""
+
+    def number(value: float | None) -> str:
+        return "n/a" if value is None else f"{value:+.2f}"
+
+    lines = [
+        f"{'parameter':<14}{'coverage':>9}{'its 95% CI':>14}{'z median':>9}{'z rsd':>7}"
+        f"{'median |err|':>14}{'median rel err':>16}{'median CI width':>17}"
+    ]
+    for name, s in parameters.items():
+        low, high = s["coverage_ci"]
+        robust_sd = "n/a" if s["z_robust_sd"] is None else f"{s['z_robust_sd']:.2f}"
+        lines.append(
+            f"{name:<14}{s['coverage']:>9.2f}{f'{low:.2f}–{high:.2f}':>14}{number(s['z_median']):>9}"
+            f"{robust_sd:>7}{s['median_abs_error']:>14.4f}{s['median_rel_error']:>16.4f}"
+            f"{s['median_ci_width']:>17.4f}"
+        )
+    return lines

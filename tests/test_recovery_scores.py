@@ -1,0 +1,61 @@
+"""The recovery experiment's scores: coverage with its binomial interval, z-score calibration."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from irc_torchrl.algorithms.fit import FitResult
+from irc_torchrl.algorithms.recovery import coverage_interval, format_parameters, score_recovery
+from irc_torchrl.objectives.fisher import Intervals
+
+
+@pytest.mark.parametrize(
+    ("covered", "n", "expected"),
+    [(38, 40, (0.8308, 0.9939)), (0, 10, (0.0, 0.3085)), (10, 10, (0.6915, 1.0))],
+)
+def test_coverage_interval_is_clopper_pearson(covered, n, expected):
+    """Against tabulated exact (Clopper-Pearson) 95% intervals, the ends included."""
+    assert coverage_interval(covered, n) == pytest.approx(expected, abs=1e-4)
+
+
+@pytest.mark.parametrize(("covered", "n"), [(41, 40), (-1, 40), (0, 0)])
+def test_coverage_interval_rejects_impossible_counts(covered, n):
+    with pytest.raises(ValueError, match="covered"):
+        coverage_interval(covered, n)
+
+
+def test_scores_report_coverage_interval_and_z_calibration():
+    """Four agents, one free parameter a with std 0.1 everywhere: θ̂ − θ* of 0, 0.1, 0.2 and
+    −0.3 give z = 0, 1, 2, −3, intervals ±0.196 cover the first two; b is fixed (std 0)."""
+    truth = torch.tensor([[1.0, 5.0]] * 4)
+    hat = truth + torch.tensor([[0.0, 0], [0.1, 0], [0.2, 0], [-0.3, 0]])
+    std = torch.tensor([[0.1, 0.0]] * 4)
+    intervals = Intervals(
+        std=std,
+        low=hat - 1.96 * std,
+        high=hat + 1.96 * std,
+        identified=torch.ones(4, 2, dtype=torch.bool),
+        covariance=torch.zeros(4, 2, 2),
+        profiled=torch.zeros(4, 2, dtype=torch.bool),
+    )
+    result = FitResult(
+        theta_hat=hat,
+        nuisance=torch.zeros(4, 1),
+        log_likelihood=torch.zeros(4),
+        intervals=intervals,
+        converged=torch.ones(4, dtype=torch.bool),
+        iterations=1,
+        names=["a", "b"],
+        information=torch.eye(2).expand(4, 2, 2),
+    )
+    scores = score_recovery(["a"], ["a", "b"], truth, result)["parameters"]
+    assert list(scores) == ["a"]
+    a = scores["a"]
+    assert a["coverage"] == 0.5
+    assert a["coverage_ci"] == pytest.approx(coverage_interval(2, 4))
+    # z = 0, 1, 2, -3: median 0.5, absolute deviations 0.5, 0.5, 1.5, 3.5 with median 1
+    assert a["z_median"] == pytest.approx(0.5, abs=1e-6)
+    assert a["z_robust_sd"] == pytest.approx(1.4826, rel=1e-5)
+    header, row = format_parameters(scores)
+    assert row.split()[:3] == ["a", "0.50", "{:.2f}–{:.2f}".format(*coverage_interval(2, 4))]
