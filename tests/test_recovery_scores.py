@@ -26,36 +26,37 @@ def test_coverage_interval_rejects_impossible_counts(covered, n):
 
 
 def test_scores_report_coverage_interval_and_z_calibration():
-    """Four agents, one free parameter a with std 0.1 everywhere: θ̂ − θ* of 0, 0.1, 0.2 and
-    −0.3 give z = 0, 1, 2, −3, intervals ±0.196 cover the first two; b is fixed (std 0)."""
-    truth = torch.tensor([[1.0, 5.0]] * 4)
-    hat = truth + torch.tensor([[0.0, 0], [0.1, 0], [0.2, 0], [-0.3, 0]])
-    std = torch.tensor([[0.1, 0.0]] * 4)
+    """Five agents, one free parameter a with std 0.1: θ̂ − θ* of 0, 0.1, 0.2 and −0.3 give
+    z = 0, 1, 2, −3, intervals ±0.196 cover the first two; the fifth is unidentified (std inf,
+    an interval over the whole range that covers) and has no z; b is fixed (std 0)."""
+    truth = torch.tensor([[1.0, 5.0]] * 5)
+    hat = truth + torch.tensor([[0.0, 0], [0.1, 0], [0.2, 0], [-0.3, 0], [0.5, 0]])
+    std = torch.tensor([[0.1, 0.0]] * 4 + [[float("inf"), 0.0]])
     intervals = Intervals(
         std=std,
-        low=hat - 1.96 * std,
-        high=hat + 1.96 * std,
-        identified=torch.ones(4, 2, dtype=torch.bool),
-        covariance=torch.zeros(4, 2, 2),
-        profiled=torch.zeros(4, 2, dtype=torch.bool),
+        low=torch.where(std.isinf(), -10.0, hat - 1.96 * std),
+        high=torch.where(std.isinf(), 10.0, hat + 1.96 * std),
+        identified=std.isfinite(),
+        covariance=torch.zeros(5, 2, 2),
+        profiled=torch.zeros(5, 2, dtype=torch.bool),
     )
     result = FitResult(
         theta_hat=hat,
-        nuisance=torch.zeros(4, 1),
-        log_likelihood=torch.zeros(4),
+        nuisance=torch.zeros(5, 1),
+        log_likelihood=torch.zeros(5),
         intervals=intervals,
-        converged=torch.ones(4, dtype=torch.bool),
+        converged=torch.ones(5, dtype=torch.bool),
         iterations=1,
         names=["a", "b"],
-        information=torch.eye(2).expand(4, 2, 2),
+        information=torch.eye(2).expand(5, 2, 2),
     )
     scores = score_recovery(["a"], ["a", "b"], truth, result)["parameters"]
     assert list(scores) == ["a"]
     a = scores["a"]
-    assert a["coverage"] == 0.5
-    assert a["coverage_ci"] == pytest.approx(coverage_interval(2, 4))
+    assert a["coverage"] == 0.6
+    assert a["coverage_ci"] == pytest.approx(coverage_interval(3, 5))
     # z = 0, 1, 2, -3: median 0.5, absolute deviations 0.5, 0.5, 1.5, 3.5 with median 1
     assert a["z_median"] == pytest.approx(0.5, abs=1e-6)
     assert a["z_robust_sd"] == pytest.approx(1.4826, rel=1e-5)
     header, row = format_parameters(scores)
-    assert row.split()[:3] == ["a", "0.50", "{:.2f}–{:.2f}".format(*coverage_interval(2, 4))]
+    assert row.split()[:3] == ["a", "0.60", "{:.2f}–{:.2f}".format(*coverage_interval(3, 5))]

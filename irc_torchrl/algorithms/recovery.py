@@ -112,7 +112,9 @@ def score_recovery(
         low, high = result.intervals.low[:, j], result.intervals.high[:, j]
         error = (hat - truth).abs()
         covered = int(((low <= truth) & (truth <= high)).sum())
-        z = ((hat - truth) / result.intervals.std[:, j].double())[result.intervals.std[:, j] > 0]
+        std = result.intervals.std[:, j].double()
+        # fixed (std 0) and unidentified (std inf) parameters have no z-score
+        z = ((hat - truth) / std)[(std > 0) & std.isfinite()]
         parameters[name] = {
             "coverage": covered / len(truth),
             "coverage_ci": coverage_interval(covered, len(truth)),
