@@ -107,8 +107,9 @@ class DDPGConfig:
     lr_actor: float = 1e-4
     #: the actor's learning rate during behaviour cloning (lr_actor takes over after it).
     #: With clone_updates=6000 and lr_actor=1e-5 DDPG still drops the clone within 500
-    #: updates but comes back above 80% within 3000-6000 (seeds 0-4); at 1e-4 (seeds 0, 1)
-    #: and 3e-5 (seed 1) it never does
+    #: updates but comes back above 80% within 3000-6000 (seeds 0-4), within 1000-2000 with
+    #: lr_critic=3e-3 too (seeds 0-4, ending at 88-90%); at 1e-4 (seeds 0, 1) and 3e-5
+    #: (seed 1) it never does
     lr_clone: float = 1e-4
     lr_critic: float = 1e-3
     #: gradient norm clip of each network (0 disables)
