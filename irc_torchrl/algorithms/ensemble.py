@@ -196,7 +196,12 @@ class Firefly2DConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise ValueError(f"config: {name} must be positive, got {value}")
-        for name, value in {"ddpg.bc_weight": d.bc_weight, "ddpg.bc_updates": d.bc_updates}.items():
+        for name, value in {
+            "ddpg.bc_weight": d.bc_weight,
+            "ddpg.bc_updates": d.bc_updates,
+            "ddpg.policy_noise": d.policy_noise,
+            "ddpg.noise_clip": d.noise_clip,
+        }.items():
             if not value >= 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {value}")
         for name, value in {"ddpg.gamma": d.gamma, "ddpg.tau": d.tau}.items():
@@ -216,12 +221,6 @@ class Firefly2DConfig:
             )
         if d.loss not in ("ddpg", "td3"):
             raise ValueError(f"config: ddpg.loss must be 'ddpg' or 'td3', got {d.loss!r}")
-        for name, value in {
-            "ddpg.policy_noise": d.policy_noise,
-            "ddpg.noise_clip": d.noise_clip,
-        }.items():
-            if not value >= 0:
-                raise ValueError(f"config: {name} must be ≥ 0, got {value}")
         if d.warmup_policy not in ("pursuit", "random"):
             raise ValueError(
                 f"config: ddpg.warmup_policy must be 'pursuit' or 'random', got {d.warmup_policy!r}"

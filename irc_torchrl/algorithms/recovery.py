@@ -131,8 +131,8 @@ def score_recovery(
 def format_parameters(parameters: dict) -> list[str]:
     """Table rows of :func:`score_recovery`'s per-parameter scores, a header first."""
 
-    def number(value: float | None) -> str:
-        return "n/a" if value is None else f"{value:+.2f}"
+    def number(value: float | None, spec: str) -> str:
+        return "n/a" if value is None else format(value, spec)
 
     lines = [
         f"{'parameter':<14}{'coverage':>9}{'its 95% CI':>14}{'z median':>9}{'z rsd':>7}"
@@ -140,10 +140,10 @@ def format_parameters(parameters: dict) -> list[str]:
     ]
     for name, s in parameters.items():
         low, high = s["coverage_ci"]
-        robust_sd = "n/a" if s["z_robust_sd"] is None else f"{s['z_robust_sd']:.2f}"
         lines.append(
-            f"{name:<14}{s['coverage']:>9.2f}{f'{low:.2f}–{high:.2f}':>14}{number(s['z_median']):>9}"
-            f"{robust_sd:>7}{s['median_abs_error']:>14.4f}{s['median_rel_error']:>16.4f}"
+            f"{name:<14}{s['coverage']:>9.2f}{f'{low:.2f}–{high:.2f}':>14}"
+            f"{number(s['z_median'], '+.2f'):>9}{number(s['z_robust_sd'], '.2f'):>7}"
+            f"{s['median_abs_error']:>14.4f}{s['median_rel_error']:>16.4f}"
             f"{s['median_ci_width']:>17.4f}"
         )
     return lines
