@@ -8,7 +8,9 @@ For each seed (3, or 1 with ``--quick``) trains the default config and reads the
 which success over the fixed θ grid first reached 80% and 90% (median over seeds), the
 updates per second, and the CPU time to 95% of the final evaluation return. Then trains a
 specialist (every θ parameter fixed) at 5 θ spread over the prior with the same frame budget
-and compares returns with the ensemble and with the belief-pursuit controller at those θ.
+and compares returns with the ensemble and with the belief-pursuit controller at those θ, and
+how much each θ parameter moves the ensemble's actions and the controller's (what Algorithm 2
+can read from them).
 When ``stable_baselines3`` imports, TD3 on the gymnasium adapter gets the same CPU time.
 """
 
@@ -21,7 +23,13 @@ from pathlib import Path
 
 import torch
 
-from irc_torchrl.algorithms.ensemble import evaluate_policy, make_model, theta_grid, train_ensemble
+from irc_torchrl.algorithms.ensemble import (
+    evaluate_policy,
+    make_model,
+    theta_grid,
+    theta_sensitivity,
+    train_ensemble,
+)
 from irc_torchrl.config import load_firefly2d_config
 from irc_torchrl.data.files import write_json
 from irc_torchrl.modules.pursuit import BeliefPursuit
@@ -165,10 +173,21 @@ def main() -> None:
             + (f"{row['ratio']:>6.2f}" if row["ratio"] is not None else "specialist did not learn")
         )
     model = runs[0]["model"]
+    grid = theta_grid(model.theta_space, 64, 12345)
+    sensitivity = {
+        name: theta_sensitivity(model, policy, grid)
+        for name, policy in (("ensemble", runs[0]["actor"]), ("pursuit", BeliefPursuit(model)))
+    }
+    print("mean |Δ action| as one θ parameter spans its range (a_v / a_ω)")
+    for name in model.theta_space.free_names:
+        print(
+            f"  {name:>12}"
+            + "".join(f"  {k} {v[name][0]:.3f} / {v[name][1]:.3f}" for k, v in sensitivity.items())
+        )
     history = runs[0]["history"]
     budget = history[-1]["train_cpu_s"]
     budgets = [budget * f for f in (0.125, 0.25, 0.5, 1.0)]
-    td3 = td3_run(budgets, 0, model, theta_grid(model.theta_space, 64, 12345))
+    td3 = td3_run(budgets, 0, model, grid)
     if td3:
         print(f"{'CPU s':>7} {'TD3 steps':>9} {'TD3 success':>11} {'ensemble success':>16}")
         for row in td3:
@@ -185,6 +204,7 @@ def main() -> None:
             "median": med,
             "runs": [{k: v for k, v in r.items() if k not in ("actor", "model")} for r in runs],
             "specialists": rows,
+            "theta_sensitivity": sensitivity,
             "td3": [{k: v for k, v in row.items() if not k.startswith("per_theta")} for row in td3]
             if td3
             else None,

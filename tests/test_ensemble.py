@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -20,6 +21,7 @@ from irc_torchrl.algorithms.ensemble import (
     make_model,
     make_train_env,
     theta_grid,
+    theta_sensitivity,
     train_ensemble,
 )
 from irc_torchrl.config import config_to_dict, load_firefly2d_config
@@ -46,6 +48,7 @@ def test_shipped_yaml_equals_the_embedded_default():
         ("theta_fixed={g_v: 9.0}", "theta_fixed: fixed g_v=9.0 outside its range"),
         ("ddpg.n_env=3", "unknown key 'ddpg.n_env'; valid keys: .*ddpg.n_envs"),
         ("ddpg.bc_weight=-1", "ddpg.bc_weight must be ≥ 0"),
+        ("ddpg.pre_activation_weight=-1", "ddpg.pre_activation_weight must be ≥ 0"),
         ("ddpg.loss=sac", "ddpg.loss must be 'ddpg' or 'td3'"),
         ("ddpg.policy_delay=0", "ddpg.policy_delay must be positive"),
         ("ddpg.noise_clip=-0.1", "ddpg.noise_clip must be ≥ 0"),
@@ -96,14 +99,31 @@ def test_ddpg_loss_and_soft_update_move_the_target_networks():
     assert isinstance(losses, TensorDict)
 
 
-def _distance_from_controller(result) -> torch.Tensor:
-    """Mean squared distance of a run's last actor from the pursuit controller's actions."""
+def _last_actor_and_beliefs(result):
+    """A run's last actor (not the kept best) and beliefs along the pursuit controller's trials."""
     env = make_train_env(result.model, 64, seed=9)
     beliefs = env.rollout(6, BeliefPursuit(result.model), break_when_any_done=False)
-    teacher = BeliefPursuit(result.model)(beliefs.clone())["action"].clamp(-0.97, 0.97)
     actor = make_actor(result.model, [16, 16])
     actor.load_state_dict(torch.load(result.checkpoint, weights_only=True)["actor"])
+    return actor, beliefs
+
+
+def _distance_from_controller(result) -> torch.Tensor:
+    """Mean squared distance of a run's last actor from the pursuit controller's actions."""
+    actor, beliefs = _last_actor_and_beliefs(result)
+    teacher = BeliefPursuit(result.model)(beliefs.clone())["action"].clamp(-0.97, 0.97)
     return (actor(beliefs.clone())["action"] - teacher).pow(2).mean()
+
+
+def test_pre_activation_penalty_keeps_the_actor_off_the_flat_ends_of_tanh(tmp_path):
+    fast = ["logger=none", "ddpg.clone_updates=0", "ddpg.lr_actor=0.01"]  # only DDPG moves it
+    size = {}
+    for weight in (0, 10):
+        config = tiny(*fast, f"ddpg.pre_activation_weight={weight}")
+        result = train_ensemble(config, out=tmp_path / str(weight), progress=False, seed=5)
+        actor, beliefs = _last_actor_and_beliefs(result)
+        size[weight] = actor(beliefs.clone())["param"].pow(2).mean().item()
+    assert size[10] < 0.5 * size[0], size
 
 
 def test_behaviour_cloning_term_pulls_the_actor_towards_the_controller(tmp_path):
@@ -140,6 +160,14 @@ def test_cloning_runs_at_lr_clone_and_ddpg_at_lr_actor(tmp_path):
         assert ckpt["optimiser_actor"]["param_groups"][0]["lr"] == 1e-12
     cloned, frozen = (_distance_from_controller(runs[lr]) for lr in (1e-2, 1e-12))
     assert cloned < 0.5 * frozen, (cloned, frozen)
+
+
+def test_training_summary_holds_the_kept_policys_theta_sensitivity(tmp_path):
+    result = train_ensemble(tiny("logger=none"), out=tmp_path, progress=False, seed=5)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    grid, e = torch.tensor(summary["theta_grid"]), result.config.evaluation
+    expected = theta_sensitivity(result.model, result.actor, grid, e.trials_per_theta, e.seed)
+    assert summary["theta_sensitivity"] == expected
 
 
 def test_td3_trains_twin_critics_and_moves_the_actor_only_every_policy_delay_steps(tmp_path):
@@ -264,6 +292,24 @@ def test_shipped_checkpoint_loads_by_name_and_catches_fireflies():
     # the shipped policy was kept at 84.6% success over the prior (pursuit floor 86.5%)
     assert metrics["success_rate"] > 0.8
     assert metrics["mean_return"] > floor["mean_return"] - 0.5
+
+
+def test_theta_sensitivity_sees_which_parameters_a_policy_reads():
+    # the pursuit controller reads the gains and the goal radius, never a noise or the effort
+    # cost; the shipped ensemble's actions turn on every free parameter (measured on this grid:
+    # 0.096-0.527 summed over both action dimensions, obs σ_v least; on the training grid,
+    # policies cloned from the controller and refined by a slow DDPG actor move a_v 3-17 times
+    # less than the shipped one for σ_v, σ_ω and the goal radius)
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    grid = theta_grid(model.theta_space, 16, seed=3)
+    space = model.theta_space
+    floor = theta_sensitivity(model, BeliefPursuit(model), grid, trials_per_theta=8, seed=4)
+    shipped = theta_sensitivity(model, actor, grid, trials_per_theta=8, seed=4)
+    assert list(floor) == list(shipped) == space.free_names
+    for name in ("sigma_v", "sigma_w", "obs_sigma_v", "obs_sigma_w", "effort_cost"):
+        assert floor[name] == [0.0, 0.0], name
+    assert floor["g_w"][1] > 0.05 and floor["goal_radius"][0] > 0.01
+    assert all(sum(change) > 0.05 for change in shipped.values()), shipped
 
 
 def test_shipped_critic_values_stopping_on_the_target_and_going_when_it_is_far():

@@ -58,6 +58,7 @@ __all__ = [
     "load_ensemble_policy",
     "make_model",
     "theta_grid",
+    "theta_sensitivity",
     "train_ensemble",
 ]
 
@@ -100,6 +101,10 @@ class DDPGConfig:
     #: the weight reached 0). Off by default: the shipped checkpoint is trained without it
     bc_weight: float = 0.0
     bc_updates: int = 0
+    #: weight of the mean square of the actor's pre-tanh output in its loss (rlkit's DDPG
+    #: ``policy_pre_activation_weight``): it keeps the squashed actions off the flat ends of
+    #: tanh, where the critic's gradient no longer moves them
+    pre_activation_weight: float = 0.0
     buffer_size: int = 200_000
     batch_size: int = 512
     hidden: list[int] = field(default_factory=lambda: [64, 64, 64])
@@ -199,6 +204,7 @@ class Firefly2DConfig:
         for name, value in {
             "ddpg.bc_weight": d.bc_weight,
             "ddpg.bc_updates": d.bc_updates,
+            "ddpg.pre_activation_weight": d.pre_activation_weight,
             "ddpg.policy_noise": d.policy_noise,
             "ddpg.noise_clip": d.noise_clip,
         }.items():
@@ -296,24 +302,16 @@ def evaluate_policy(
         ``success_rate``, ``mean_return``, ``mean_length`` (steps), and per θ
         ``per_theta_success`` and ``per_theta_return`` (lists, in the order of ``thetas``).
     """
-    n_theta = thetas.shape[0]
-    batch = n_theta * trials_per_theta
-    theta = thetas.float().repeat_interleave(trials_per_theta, 0)
-    env = TransformedEnv(
-        Firefly2DEnv(model=model, batch_size=(batch,), theta=theta, seed=seed), EKFBelief(model)
-    )
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
-    done = rollout["next", "done"].squeeze(-1)  # [N, T]; the timeout makes every row end
-    last = done.int().argmax(-1)  # the first done of each row: the end of its first trial
-    steps = torch.arange(done.shape[-1])
-    alive = (steps.unsqueeze(0) <= last.unsqueeze(-1)).float()
+    rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
+    batch = rollout.shape[0]
+    last = alive.sum(-1) - 1
     returns = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1)
     end = rollout[torch.arange(batch), last]
     space = model.theta_space
     radius = end["task_theta"][..., space.index("goal_radius")]
     inside = (end["state"][..., :2] - end["target"]).norm(dim=-1) < radius
     success = (model.stops(end["action"], end["step"]).squeeze(-1) & inside).float()
+    n_theta = thetas.shape[0]
     per_theta = success.reshape(n_theta, trials_per_theta).mean(-1)
     return {
         "success_rate": float(success.mean()),
@@ -322,6 +320,61 @@ def evaluate_policy(
         "per_theta_success": per_theta.tolist(),
         "per_theta_return": returns.reshape(n_theta, trials_per_theta).mean(-1).tolist(),
     }
+
+
+@torch.no_grad()
+def theta_sensitivity(
+    model: Firefly2DModel,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    thetas: torch.Tensor,
+    trials_per_theta: int = 8,
+    seed: int = 12345,
+) -> dict[str, list[float]]:
+    """How much ``policy``'s action turns on each free θ parameter, at the beliefs it visits.
+
+    Algorithm 2 reads θ from the actions, so a parameter the policy ignores is seen only
+    through the belief filter. Per free parameter: the mean absolute change of each action
+    dimension when the policy's θ (its input only; the belief held) moves from the lower to
+    the upper end of that parameter's range, over every step of the greedy trials of
+    :func:`evaluate_policy` (same ``thetas``, ``trials_per_theta`` and ``seed``).
+
+    Returns:
+        ``{name: [change of a_0, change of a_1, ...]}`` for each free parameter.
+    """
+    rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
+    visited = rollout[alive]
+    space = model.theta_space
+    change = {}
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for name in space.free_names:
+            actions = []
+            for end in (space[name].low, space[name].high):
+                moved = visited.clone()
+                moved["theta"][..., space.index(name)] = end
+                actions.append(policy(moved)["action"])
+            change[name] = (actions[1] - actions[0]).abs().mean(0).tolist()
+    return change
+
+
+def _first_trials(
+    model: Firefly2DModel,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    thetas: torch.Tensor,
+    trials_per_theta: int,
+    seed: int,
+) -> tuple[TensorDictBase, torch.Tensor]:
+    """Greedy rollouts of ``policy``, ``trials_per_theta`` rows per θ: ``[N, T]``, and which
+    steps belong to each row's first trial ``[N, T]`` (the timeout makes every row end)."""
+    batch = thetas.shape[0] * trials_per_theta
+    theta = thetas.float().repeat_interleave(trials_per_theta, 0)
+    env = TransformedEnv(
+        Firefly2DEnv(model=model, batch_size=(batch,), theta=theta, seed=seed), EKFBelief(model)
+    )
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
+    done = rollout["next", "done"].squeeze(-1)
+    last = done.int().argmax(-1)  # the first done of each row: the end of its first trial
+    return rollout, torch.arange(done.shape[-1]) <= last.unsqueeze(-1)
 
 
 @dataclass
@@ -538,6 +591,9 @@ def _train(
                 weight = d.bc_weight * (1.0 - updates / d.bc_updates if d.bc_updates else 1.0)
                 if teacher is not None and weight > 0:
                     total = total + weight * _clone_loss(loss.actor_network, teacher, sample)
+                if d.pre_activation_weight > 0:
+                    param = loss.actor_network(sample.clone())["param"]
+                    total = total + d.pre_activation_weight * param.pow(2).mean()
             total.backward()
             if d.max_grad_norm > 0:
                 for group in (opt_actor, opt_critic):
@@ -575,6 +631,10 @@ def _train(
                 "history": history,
                 "theta_grid": thetas.tolist(),
                 "theta_names": model.theta_space.names,
+                # what Algorithm 2 can read from the kept policy's actions
+                "theta_sensitivity": theta_sensitivity(
+                    model, actor, thetas, e.trials_per_theta, e.seed
+                ),
             },
         )
     return TrainResult(
