@@ -9,8 +9,10 @@ The experiment runners (:func:`~irc_torchrl.algorithms.demo.run_demo`,
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.ensemble import (
     critic_slices,
+    evaluate_policy,
     load_ensemble_critic,
     load_ensemble_policy,
+    theta_sensitivity,
     train_ensemble,
 )
 from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check, profile_intervals
@@ -22,6 +24,7 @@ __all__ = [
     "QIterationConfig",
     "boltzmann_policy",
     "critic_slices",
+    "evaluate_policy",
     "fit_theta",
     "greedy_returns",
     "load_ensemble_critic",
@@ -31,6 +34,7 @@ __all__ = [
     "particle_check",
     "profile_intervals",
     "simulate_agents",
+    "theta_sensitivity",
     "train_ensemble",
     "train_factorised_q",
 ]
