@@ -236,6 +236,21 @@ def test_evaluation_reports_per_theta_success_on_a_fixed_grid():
     assert 1 <= metrics["mean_length"] <= model.max_steps
 
 
+@pytest.mark.parametrize("score", [evaluate_policy, theta_sensitivity])
+def test_evaluation_refuses_bad_thetas_before_any_rollout(score):
+    model = Firefly2DModel()
+    policy = BeliefPursuit(model)
+    default = model.theta_space.default()
+    with pytest.raises(ValueError, match=r"thetas: expected shape \[n, 9\], got \[9\]"):
+        score(model, policy, default)
+    outside = default.clone()
+    outside[model.theta_space.index("g_v")] = 5.0
+    with pytest.raises(ValueError, match="thetas: g_v=5 is outside its space"):
+        score(model, policy, outside[None])
+    with pytest.raises(ValueError, match="trials_per_theta: expected an integer ≥ 1, got 0"):
+        score(model, policy, default[None], trials_per_theta=0)
+
+
 def test_pursuit_reaches_the_target_without_noise():
     model = Firefly2DModel()
     quiet = {"sigma_v": 0.0, "sigma_w": 0.0, "obs_sigma_v": 0.0, "obs_sigma_w": 0.0}

@@ -369,6 +369,12 @@ def _first_trials(
 ) -> tuple[TensorDictBase, torch.Tensor]:
     """Greedy rollouts of ``policy``, ``trials_per_theta`` rows per θ: ``[N, T]``, and which
     steps belong to each row's first trial ``[N, T]`` (the timeout makes every row end)."""
+    space = model.theta_space
+    space.validate(thetas, "thetas")
+    if thetas.ndim != 2:
+        raise ValueError(f"thetas: expected shape [n, {space.dim}], got {list(thetas.shape)}")
+    if not trials_per_theta >= 1:
+        raise ValueError(f"trials_per_theta: expected an integer ≥ 1, got {trials_per_theta}")
     batch = thetas.shape[0] * trials_per_theta
     theta = thetas.float().repeat_interleave(trials_per_theta, 0)
     env = TransformedEnv(
