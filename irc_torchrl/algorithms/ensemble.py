@@ -105,7 +105,7 @@ class DDPGConfig:
     #: ``policy_pre_activation_weight``): it keeps the squashed actions off the flat ends of
     #: tanh, where the critic's gradient no longer moves them. The default run's seed 1 ends
     #: with every pre-tanh output beyond ±3 (0% success); with 0.01 and total_frames=384000
-    #: seeds 0-5 all discover the task (best 79-85%), their policies read θ about as much as
+    #: seeds 0-6 all discover the task (best 79-85%), their policies read θ about as much as
     #: the shipped one, yet the inverse recovers less from seed 0's (README, Benchmarks), so
     #: the default stays off
     pre_activation_weight: float = 0.0
@@ -346,7 +346,7 @@ def theta_sensitivity(
         ``{name: [change of a_0, change of a_1, ...]}`` for each free parameter.
     """
     rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
-    visited = rollout[alive]
+    visited = rollout[alive].exclude("next")  # what the policy reads at each step
     space = model.theta_space
     change = {}
     with set_exploration_type(ExplorationType.DETERMINISTIC):
