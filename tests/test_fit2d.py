@@ -57,9 +57,9 @@ def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, 
 
 
 def test_gains_and_motor_noise_are_recovered_by_the_marginal_estimator(recovery):
-    # the gains are read off every action: within 3% (measured median 0.2% and 0.3%); the
-    # motor noise within 30% (measured 0.100-0.106 against 0.1). The hard E-step attributes the
-    # agent's belief fluctuations to motor noise and inflates it (measured 0.16-0.61): the
+    # the gains are read off every action: within 3% (measured median 0.4% and 2.6%); the
+    # motor noise within 30% (measured 0.093-0.106 against 0.1). The hard E-step attributes the
+    # agent's belief fluctuations to motor noise and inflates it (measured 0.12-0.52): the
     # reason the marginal estimator exists
     _, summary, _ = recovery
     marginal, hard = summary["methods"]["marginal"], summary["methods"]["map"]
@@ -92,8 +92,8 @@ def test_summary_scores_both_groups_of_agents(recovery):
 def test_the_particle_check_finds_the_hard_e_step_far_from_the_likelihood(recovery):
     # both estimators approximate the likelihood the particle filter estimates; the hard
     # E-step ignores the spread of the agent's beliefs and loses far more (measured here:
-    # medians 262 and 383 nats at θ̂ and θ* against -4 and 7 for marginal), and its θ̂ is
-    # not the likelihood's maximum: the truth scores better (all 3 agents, by 5-21 nats)
+    # medians 229 and 320 nats at θ̂ and θ* against 2.1 and 2.6 for marginal), and its θ̂
+    # is not the likelihood's maximum: the truth scores better (all 3 agents, by 12-32 nats)
     _, summary, _ = recovery
     check = {m: e["particle_check"] for m, e in summary["methods"].items()}
     for where in ("at_theta_hat", "at_theta_true"):
@@ -107,7 +107,7 @@ def test_a_gaussian_sum_over_the_last_steps_comes_closer_to_the_particle_filter(
     # where the shipped agent stops, its belief given the actions is far from Gaussian: split
     # into 16 Gaussians for each trial's last 4 steps, the outer filter's log-likelihood at θ*
     # comes closer to the particle filter's (1000 particles; measured |gap| summed over the 3
-    # agents 24.5 nats for one Gaussian, 8.4 for the mixture; asserted: half)
+    # agents 23.0 nats for one Gaussian, 9.4 for the mixture; asserted: half)
     _, model, action_model = shipped
     held, truth, motor = at_truth
     gap = {}
