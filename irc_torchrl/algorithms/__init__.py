@@ -12,6 +12,7 @@ from irc_torchrl.algorithms.ensemble import (
     evaluate_policy,
     load_ensemble_critic,
     load_ensemble_policy,
+    stop_sharpness,
     theta_sensitivity,
     train_ensemble,
 )
@@ -34,6 +35,7 @@ __all__ = [
     "particle_check",
     "profile_intervals",
     "simulate_agents",
+    "stop_sharpness",
     "theta_sensitivity",
     "train_ensemble",
     "train_factorised_q",

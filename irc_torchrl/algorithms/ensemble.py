@@ -57,6 +57,7 @@ __all__ = [
     "load_ensemble_critic",
     "load_ensemble_policy",
     "make_model",
+    "stop_sharpness",
     "theta_grid",
     "theta_sensitivity",
     "train_ensemble",
@@ -161,7 +162,7 @@ class Firefly2DConfig:
 
     task: str = TASK
     #: seed 3 trained the shipped policy (of seeds 0-6 reaching 80%, the one that stops most
-    #: gently: the smaller the step in a_v at a stop, the smoother the inverse's likelihood)
+    #: gently, by stop_sharpness: the smaller the drop, the smoother the inverse's likelihood)
     seed: int = 3
     #: torch threads; small networks run fastest on one thread per process
     threads: int = 1
@@ -347,6 +348,15 @@ def theta_sensitivity(
         ``{name: [change of a_0, change of a_1, ...]}`` for each free parameter.
     """
     rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
+    return _sensitivity(model, policy, rollout, alive)
+
+
+def _sensitivity(
+    model: Firefly2DModel,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    rollout: TensorDictBase,
+    alive: torch.Tensor,
+) -> dict[str, list[float]]:
     visited = rollout[alive].exclude("next")  # what the policy reads at each step
     space = model.theta_space
     change = {}
@@ -359,6 +369,61 @@ def theta_sensitivity(
                 actions.append(policy(moved)["action"])
             change[name] = (actions[1] - actions[0]).abs().mean(0).tolist()
     return change
+
+
+def stop_sharpness(
+    model: Firefly2DModel,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    thetas: torch.Tensor,
+    trials_per_theta: int = 8,
+    seed: int = 12345,
+) -> dict[str, float | None]:
+    """How abruptly ``policy`` stops: its greedy forward control the step before a stop and at
+    it, over the first trials of :func:`evaluate_policy` (same arguments) that end by a stop.
+
+    Algorithm 2 scores a stop by its forward control; a policy that switches from going to
+    stopping within the spread of the agent's belief makes the likelihood a cusp there (README,
+    the 2D recovery). Returns the fraction of trials that stop and the mean ``a_v_before``,
+    ``a_v_stop`` and ``drop`` (their difference); the means are None where no trial stops.
+    """
+    rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
+    return _sharpness(model, rollout, alive)
+
+
+def _sharpness(
+    model: Firefly2DModel, rollout: TensorDictBase, alive: torch.Tensor
+) -> dict[str, float | None]:
+    last = alive.sum(-1) - 1  # the last step of each row's first trial
+    rows = torch.arange(last.shape[0])
+    action, step = rollout["action"][rows, last], rollout["step"][rows, last]
+    stopped = model.stops(action, step).squeeze(-1)
+    before = rollout["action"][rows, last - 1][stopped, 0]
+    at = action[stopped, 0]
+
+    def mean(x: torch.Tensor) -> float | None:
+        return float(x.mean()) if x.numel() else None
+
+    return {
+        "stopped": float(stopped.float().mean()),
+        "a_v_before": mean(before),
+        "a_v_stop": mean(at),
+        "drop": mean(before - at),
+    }
+
+
+def _policy_report(
+    model: Firefly2DModel,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    thetas: torch.Tensor,
+    trials_per_theta: int,
+    seed: int,
+) -> dict[str, dict]:
+    """:func:`theta_sensitivity` and :func:`stop_sharpness` from one set of greedy trials."""
+    rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
+    return {
+        "theta_sensitivity": _sensitivity(model, policy, rollout, alive),
+        "stop_sharpness": _sharpness(model, rollout, alive),
+    }
 
 
 def _first_trials(
@@ -642,10 +707,9 @@ def _train(
                 "history": history,
                 "theta_grid": thetas.tolist(),
                 "theta_names": model.theta_space.names,
-                # what Algorithm 2 can read from the kept policy's actions
-                "theta_sensitivity": theta_sensitivity(
-                    model, actor, thetas, e.trials_per_theta, e.seed
-                ),
+                # what Algorithm 2 can read from the kept policy's actions, and how abruptly
+                # it stops (one set of greedy trials for both)
+                **_policy_report(model, actor, thetas, e.trials_per_theta, e.seed),
             },
         )
     return TrainResult(
