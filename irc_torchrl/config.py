@@ -142,6 +142,10 @@ class RecordingFitConfig:
     #: with ``marginal``, Gaussians the outer filter's latent splits into for each trial's last
     #: 4 steps (1: one throughout; 16 come closer to the particle filter, for ~6× the time)
     components: int = 1
+    #: datasets per recording simulated at its θ̂ (its fitted motor noise, its world, its
+    #: number of trials) and refitted the same way, to calibrate the intervals
+    #: (:mod:`~irc_torchrl.algorithms.calibration`; 0: none). Each costs about the fit again
+    calibrate: int = 0
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)
@@ -161,8 +165,9 @@ class RecordingFitConfig:
             threads=self.threads,
             components=self.components,
         )
-        if self.particles < 0:
-            raise ValueError(f"config: particles must be ≥ 0, got {self.particles}")
+        for name in ("particles", "calibrate"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
         if self.n_starts > self.n_screen:
             raise ValueError(
                 f"config: n_starts={self.n_starts} exceeds n_screen={self.n_screen}; "

@@ -104,6 +104,41 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     assert "particle check: the likelihood's approximation loses" in table
 
 
+def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulated, tmp_path):
+    # calibrate=1: a recording simulated at θ̂ and refitted; each interval is the fit's own
+    # scaled about θ̂ (in the fit's coordinates) by its parameter's factor
+    args = ["fit", str(simulated / "agent0.csv"), "--out", str(tmp_path), "--quiet"]
+    assert main([*args, "--method", "map", "--free", ",".join(FREE), "calibrate=1"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    calibration = summary["calibration"]
+    assert calibration["n_datasets"] == 1 and list(calibration["factor"]) == FREE
+    assert np.array(calibration["pivots"], dtype=float).shape == (1, 1, len(FREE))
+    assert set(summary["calibrated_parameters"]) == set(FREE)
+    (agent,) = summary["agents"]
+    for name in FREE:
+        factor = calibration["factor"][name]
+        low, high = agent["calibrated"]["ci_low"][name], agent["calibrated"]["ci_high"][name]
+        hat = agent["theta_hat"][name]
+        assert low <= hat <= high
+        bounds = (SPACE[name].low, SPACE[name].high)
+        if factor is None:  # no refit had an interval
+            assert (low, high) == pytest.approx(bounds, abs=1e-9 * (bounds[1] - bounds[0]))
+            continue
+
+        def logit(x, p=SPACE[name]):
+            eps = np.finfo(np.float64).eps ** 0.5
+            q = min(max((x - p.low) / (p.high - p.low), eps), 1 - eps)  # as to_unconstrained
+            return float(np.log(q / (1 - q)))
+
+        for raw, calibrated in ((agent["ci_low"][name], low), (agent["ci_high"][name], high)):
+            expected = factor * (logit(raw) - logit(hat))
+            assert logit(calibrated) - logit(hat) == pytest.approx(expected, rel=1e-6)
+        assert agent["calibrated"]["std"][name] == pytest.approx(factor * agent["std"][name])
+    table = format_fit(summary)
+    assert "calibrated 95% CI" in table and "intervals calibrated on 1 simulated" in table
+    assert "truth inside the calibrated 95% interval" in table
+
+
 def test_fit_writes_beliefs_and_figures(fitted, simulated):
     out, summary = fitted
     recording = read_trials(simulated / "agent0.csv", Firefly2DModel())
@@ -202,6 +237,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["recover", "fit.covariance=robust"], "fit.covariance must be one of"),
         (["recover", "particles=-1"], "particles must be ≥ 0"),
         (["fit", "FILE", "particles=-5"], "particles must be ≥ 0"),
+        (["recover", "calibrate=-1"], "calibrate must be ≥ 0"),
+        (["fit", "FILE", "calibrate=-2"], "calibrate must be ≥ 0"),
         (["recover", "components=0"], "components: expected 1 or more than the belief's 5"),
         (["fit", "FILE", "components=0"], "components must be positive"),
         (["fit", "FILE", "components=4"], "components: expected 1 or more than the belief's 5"),

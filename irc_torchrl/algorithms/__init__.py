@@ -6,6 +6,7 @@ The experiment runners (:func:`~irc_torchrl.algorithms.demo.run_demo`,
 :mod:`irc_torchrl.config`, which imports this package, so they are imported from their modules.
 """
 
+from irc_torchrl.algorithms.calibration import Calibration, calibrate_intervals, interval_pivots
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.ensemble import (
     critic_slices,
@@ -21,13 +22,16 @@ from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 
 __all__ = [
+    "Calibration",
     "FitResult",
     "QIterationConfig",
     "boltzmann_policy",
+    "calibrate_intervals",
     "critic_slices",
     "evaluate_policy",
     "fit_theta",
     "greedy_returns",
+    "interval_pivots",
     "load_ensemble_critic",
     "load_ensemble_policy",
     "motor_noise_policy",

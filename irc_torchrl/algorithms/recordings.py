@@ -22,9 +22,16 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictSequential
 from tqdm.auto import tqdm
 
 import irc_torchrl
+from irc_torchrl.algorithms.calibration import (
+    Calibration,
+    calibrate_intervals,
+    format_factors,
+    simulate_at_fits,
+)
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
@@ -286,6 +293,14 @@ def fit_recordings(
         fits, beliefs, timings, checks = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress
         )
+        calibrations = {}
+        if config.calibrate:
+            start = time.perf_counter()
+            calibrations = _calibrate_fits(
+                model, actor, action_model, space, recordings, fits, config, method, seed,
+                target, progress,
+            )  # fmt: skip
+            timings["calibrate_s"] = time.perf_counter() - start
     timings = {"read_s": read_s, **timings}
     labels = _labels(paths)
     known = all(t is not None for t in truths)
@@ -296,6 +311,8 @@ def fit_recordings(
         name: _scored(space, result, theta_true, paths, labels, recordings, checks[name])
         for name, result in fits.items()
     }
+    for name, calibration in calibrations.items():
+        _add_calibrated(by_method[name], space, calibration, fits[name], theta_true)
     primary = "marginal" if method in ("marginal", "both") else "map"
     summary = {
         "task": TASK,
@@ -400,6 +417,68 @@ def _fit_groups(
     return fits, beliefs, timings, checks
 
 
+def _calibrate_fits(
+    model: TaskModel,
+    actor: TensorDictSequential,
+    action_model: CensoredGaussianActionModel,
+    space: ThetaSpace,
+    recordings: list[TensorDict],
+    fits: dict[str, FitResult],
+    config: RecordingFitConfig,
+    method: str,
+    seed: int,
+    device: torch.device,
+    progress: bool,
+) -> dict[str, Calibration]:
+    """Every method's :class:`Calibration` from ``config.calibrate`` datasets simulated at
+    each recording's θ̂ of the last method (its motor noise, its world, its number of
+    trials), fitted by :func:`_fit_groups` as the recordings were (without particle checks)."""
+    result = fits[list(fits)[-1]]
+    world = torch.stack([r["task_theta"][0, 0] for r in recordings])
+    groups: dict[int, list[int]] = {}
+    for i, recording in enumerate(recordings):
+        groups.setdefault(recording.shape[0], []).append(i)
+    quiet = dataclasses.replace(config, particles=0)
+
+    def refit(k: int) -> dict[str, FitResult]:
+        synthetic: list[TensorDict | None] = [None] * len(recordings)
+        for g, (n_trials, members) in enumerate(groups.items()):
+            rows = torch.tensor(members, device=result.theta_hat.device)
+            simulated = simulate_at_fits(
+                model, actor, result.select(rows), world[rows], n_trials,
+                seed=seed + 1000 * (k + 1) + g,
+            )  # fmt: skip
+            for j, i in enumerate(members):
+                synthetic[i] = simulated[j].select(*TRIAL_KEYS)
+        refits, *_ = _fit_groups(
+            model, action_model, space, synthetic, quiet, method, seed, device, progress
+        )
+        return refits
+
+    theta = result.theta_hat.float().cpu()
+    return calibrate_intervals(space, theta, refit, config.calibrate)
+
+
+def _add_calibrated(
+    scored: dict[str, Any],
+    space: ThetaSpace,
+    calibration: Calibration,
+    result: FitResult,
+    theta_true: torch.Tensor | None,
+) -> None:
+    """Each agent's calibrated intervals, the calibration and, with the truth, the
+    calibrated intervals' coverage, into one method's :func:`_scored` entry."""
+    calibrated = calibration.apply(space, result)
+    scored["calibration"] = calibration.to_dict()
+    for i, agent in enumerate(scored["agents"]):
+        one = calibrated.agent(i)
+        agent["calibrated"] = {k: one[k] for k in ("ci_low", "ci_high", "std", "identified")}
+    if theta_true is not None:
+        scored["calibrated_parameters"] = score_recovery(
+            space.free_names, space.names, theta_true, calibrated
+        )["parameters"]
+
+
 def _scored(
     space: ThetaSpace,
     result: FitResult,
@@ -469,13 +548,18 @@ def format_fit(summary: dict[str, Any]) -> str:
                 f"{agent['file']} ({method}): {agent['n_trials']} trials, {agent['n_steps']} "
                 f"steps, log-likelihood {agent['log_likelihood']:.1f}, {status}"
             )
+            calibrated = agent.get("calibrated")
             # 'θ̂' is two code points shown as one character: pad it one wider
             header = f"  {'parameter':<13}{'θ̂':>10}  {'95% CI':<21}"
+            header += f"{'calibrated 95% CI':<21}" if calibrated else ""
             header += f"{'true':>9}  " if truth else ""
             lines.append(header + f"{'identified':<11}unit")
             for name in summary["free"]:
                 ci = f"[{agent['ci_low'][name]:.4g}, {agent['ci_high'][name]:.4g}]"
                 row = f"  {name:<13}{agent['theta_hat'][name]:>9.4g}  {ci:<21}"
+                if calibrated:
+                    ci = f"[{calibrated['ci_low'][name]:.4g}, {calibrated['ci_high'][name]:.4g}]"
+                    row += f"{ci:<21}"
                 row += f"{truth[name]:>9.4g}  " if truth else ""
                 row += f"{'yes' if agent['identified'][name] else 'NO':<11}{units.get(name, '')}"
                 lines.append(row)
@@ -488,7 +572,15 @@ def format_fit(summary: dict[str, Any]) -> str:
                     f"{check['approximation_gap']:.1f} nats at θ̂ (fewest effective particles "
                     f"in a trial: {check['min_effective_particles']:.0f})"
                 )
-        if "parameters" in part:
-            covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part["parameters"].items())
-            lines.append(f"{method}: truth inside the 95% interval (fraction of files): {covered}")
+        calibration = part.get("calibration")
+        if calibration:
+            lines.append(
+                f"{method}: intervals calibrated on {calibration['n_datasets']} simulated "
+                f"dataset(s) per recording, scaled by {format_factors(calibration['factor'])}"
+            )
+        for key, what in (("parameters", ""), ("calibrated_parameters", "calibrated ")):
+            if key in part:
+                covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part[key].items())
+                where = f"the {what}95% interval (fraction of files)"
+                lines.append(f"{method}: truth inside {where}: {covered}")
     return "\n".join(lines)

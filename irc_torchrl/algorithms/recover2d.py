@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -24,6 +25,12 @@ import yaml
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
+from irc_torchrl.algorithms.calibration import (
+    Calibration,
+    calibrate_intervals,
+    format_factors,
+    simulate_at_fits,
+)
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
@@ -75,6 +82,11 @@ class Recovery2DConfig:
     #: with ``marginal``, Gaussians the outer filter's latent splits into for each trial's last
     #: 4 steps (1: one throughout; 16 come closer to the particle filter, for ~6× the time)
     components: int = 1
+    #: datasets per agent simulated at the last method's θ̂ (with its fitted motor noise, in
+    #: its own world) and refitted the same way, to calibrate every method's intervals
+    #: (:mod:`~irc_torchrl.algorithms.calibration`; 0: none). Each costs about one recovery's
+    #: fitting time
+    calibrate: int = 0
     #: intervals from the sandwich: both estimators approximate the likelihood, and the
     #: trials' scores vary more than the approximation's curvature says
     fit: FitConfig = field(
@@ -91,8 +103,9 @@ class Recovery2DConfig:
             value = getattr(self.fit, name[4:]) if name.startswith("fit.") else getattr(self, name)
             if value < 1:
                 raise ValueError(f"config: {name} must be ≥ 1, got {value}")
-        if self.particles < 0:
-            raise ValueError(f"config: particles must be ≥ 0, got {self.particles}")
+        for name in ("particles", "calibrate"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
         check_mixture(Firefly2DModel(), self.components, FINAL_STEPS)
         if self.n_prior_agents < 0 or self.n_mistaken_agents < 0:
             raise ValueError("config: n_prior_agents and n_mistaken_agents must be ≥ 0")
@@ -183,7 +196,6 @@ def recover_firefly2d(
     action_model = CensoredGaussianActionModel(
         FeaturePolicy(actor), low, high, motor_noise=config.motor_noise
     )
-    fits: dict[str, FitResult] = {}
     summary: dict = {
         "task": config.task,
         "seed": config.seed,
@@ -194,27 +206,8 @@ def recover_firefly2d(
         "mistaken": mistaken.tolist(),
         "methods": {},
     }
-    for method in config.method_list:
-        loss = InverseRationalLoss(
-            model, action_model, n_agents=n_agents, method=method, components=config.components
-        )
-        # after map, map's θ̂ joins the marginal's screened draws
-        starts = fits["map"].theta_hat if "map" in fits else None
-        begin = time.perf_counter()
-        fits[method] = result = fit_theta(
-            loss,
-            held,
-            n_starts=config.fit.n_starts,
-            n_screen=config.fit.n_screen,
-            max_iter=config.fit.max_iter,
-            curvature=config.fit.curvature,
-            covariance=config.fit.covariance,
-            intervals=config.fit.intervals,
-            starts=starts,
-            seed=config.seed + 2,
-            progress=None if progress is None else lambda i, n, m=method: progress(m, i, n),
-        )
-        fit_s = time.perf_counter() - begin
+    fitted = _fit_methods(config, model, action_model, held, progress)
+    for method, (loss, result, fit_s) in fitted.items():
         scored = score_recovery(space.free_names, space.names, theta_true, result)
         groups = {
             group: score_recovery(
@@ -244,8 +237,90 @@ def recover_firefly2d(
                 loss, held, result, theta_true, config, scored["agents"]
             )
             timings[f"particle_check_{method}_s"] = time.perf_counter() - begin
+    if config.calibrate:
+        begin = time.perf_counter()
+        last = fitted[config.method_list[-1]].result
+        calibrations = _calibrate(config, model, actor, action_model, held, last, progress)
+        for method, calibration in calibrations.items():
+            calibrated = calibration.apply(space, fitted[method].result)
+            scored = score_recovery(space.free_names, space.names, theta_true, calibrated)
+            summary["methods"][method]["calibrated"] = {
+                **calibration.to_dict(),
+                "parameters": scored["parameters"],
+                "agents": [
+                    {k: agent[k] for k in ("ci_low", "ci_high", "std", "identified")}
+                    for agent in scored["agents"]
+                ],
+            }
+        timings["calibrate_s"] = time.perf_counter() - begin
     summary["timings"] = timings
-    return trials, summary, fits
+    return trials, summary, {method: fit.result for method, fit in fitted.items()}
+
+
+class _Fitted(NamedTuple):
+    """One estimator's fit of the recorded trials, with its objective and wall time."""
+
+    loss: InverseRationalLoss
+    result: FitResult
+    seconds: float
+
+
+def _fit_methods(
+    config: Recovery2DConfig,
+    model: Firefly2DModel,
+    action_model: CensoredGaussianActionModel,
+    held: TensorDict,
+    progress: Callable[[str, int, int], None] | None = None,
+    label: str = "",
+) -> dict[str, _Fitted]:
+    """Every configured estimator on ``held``, in order; after map, map's θ̂ joins the
+    marginal's screened draws. ``label`` tells the progress bars of refits apart."""
+    fitted: dict[str, _Fitted] = {}
+    for method in config.method_list:
+        loss = InverseRationalLoss(
+            model, action_model, n_agents=held.shape[0], method=method,
+            components=config.components,
+        )  # fmt: skip
+        begin = time.perf_counter()
+        result = fit_theta(
+            loss,
+            held,
+            n_starts=config.fit.n_starts,
+            n_screen=config.fit.n_screen,
+            max_iter=config.fit.max_iter,
+            curvature=config.fit.curvature,
+            covariance=config.fit.covariance,
+            intervals=config.fit.intervals,
+            starts=fitted["map"].result.theta_hat if "map" in fitted else None,
+            seed=config.seed + 2,
+            progress=None if progress is None else partial(progress, method + label),
+        )
+        fitted[method] = _Fitted(loss, result, time.perf_counter() - begin)
+    return fitted
+
+
+def _calibrate(
+    config: Recovery2DConfig,
+    model: Firefly2DModel,
+    actor,
+    action_model: CensoredGaussianActionModel,
+    held: TensorDict,
+    result: FitResult,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, Calibration]:
+    """Every method's :class:`Calibration` from ``config.calibrate`` datasets simulated at
+    ``result``'s θ̂ and motor noise, each agent in its recorded world, refitted as ``held``."""
+    world = held["task_theta"][:, 0, 0]
+
+    def refit(i: int) -> dict[str, FitResult]:
+        synthetic = simulate_at_fits(
+            model, actor, result, world, config.n_trials, seed=config.seed + 1000 + i
+        ).select(*RECORDED)
+        label = f" (calibration {i + 1}/{config.calibrate})"
+        fitted = _fit_methods(config, model, action_model, synthetic, progress, label)
+        return {method: fit.result for method, fit in fitted.items()}
+
+    return calibrate_intervals(model.theta_space, result.theta_hat.float(), refit, config.calibrate)
 
 
 def _particle_check(
@@ -357,4 +432,11 @@ def format_recovery(summary: dict) -> str:
                 f"{check['more_likely_at_theta_true']} agents' θ* more likely than θ̂"
             )
         lines += [f"  {row}" for row in format_parameters(entry["parameters"])]
+        calibrated = entry.get("calibrated")
+        if calibrated:
+            lines.append(
+                f"  calibrated by {calibrated['n_datasets']} simulated dataset(s) per agent "
+                f"(interval factors: {format_factors(calibrated['factor'])}):"
+            )
+            lines += [f"  {row}" for row in format_parameters(calibrated["parameters"])]
     return "\n".join(lines)

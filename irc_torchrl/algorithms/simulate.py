@@ -43,19 +43,22 @@ def boltzmann_policy(
 
 
 def motor_noise_policy(
-    actor: TensorDictSequential, spec: TensorSpec, motor_noise: float
+    actor: TensorDictSequential, spec: TensorSpec, motor_noise: float | torch.Tensor
 ) -> TensorDictSequential:
     """A continuous actor plus Gaussian motor noise, clipped to ``spec``'s bounds.
 
     This is the agent the inverse objective's
     :class:`~irc_torchrl.modules.likelihood.CensoredGaussianActionModel` describes; the noise
     is TorchRL's :class:`~torchrl.modules.AdditiveGaussianModule` at a constant scale.
+    ``motor_noise`` is one standard deviation, or a tensor of them broadcasting against the
+    action (e.g. ``[n_agents, 1, da]`` for :func:`simulate_agents`: each agent's fitted noise).
     """
-    if not motor_noise > 0:
-        raise ValueError(f"motor_noise: expected a positive standard deviation, got {motor_noise}")
-    noise = AdditiveGaussianModule(
-        spec, sigma_init=float(motor_noise), sigma_end=float(motor_noise), annealing_num_steps=1
-    )
+    # on the CPU, as TorchRL's module draws its noise there before moving it to the action
+    std = torch.as_tensor(motor_noise, dtype=torch.float32).cpu()
+    if not (torch.isfinite(std).all() and (std > 0).all()):
+        raise ValueError(f"motor_noise: expected positive standard deviations, got {motor_noise}")
+    noise = AdditiveGaussianModule(spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1)
+    noise.std = std  # the module's noise scale, per action where it is a tensor
     return TensorDictSequential(actor, noise)
 
 

@@ -1,0 +1,198 @@
+"""Intervals calibrated by simulation: the parametric bootstrap of the interval's pivot.
+
+Where the likelihood is an approximation, or not quadratic at the scale of its intervals (the
+2D task's stops make it a cusp), the intervals of :func:`~irc_torchrl.algorithms.fit.fit_theta`
+can be too narrow for some parameters, and no local curvature says by how much. Datasets
+simulated from every agent's fitted model and refitted the same way show it: how far each
+refit lands from the θ̂ that generated its data, in units of its own interval's half-width,
+is the pivot whose 95% quantile over agents and datasets is the factor that makes the
+intervals cover (bootstrap-t, one factor per parameter pooled over agents). Applied to the
+real fits it calibrates them to the extent the pivot's spread at θ̂ is its spread at the
+truth, which is what a simulation of the recovery can check.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
+
+from irc_torchrl.algorithms.fit import FitResult
+from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.objectives.fisher import Z95, narrow
+from irc_torchrl.theta import ThetaSpace
+
+__all__ = [
+    "Calibration",
+    "calibrate_intervals",
+    "format_factors",
+    "interval_pivots",
+    "simulate_at_fits",
+]
+
+#: unconstrained coordinates are clamped here when intervals are widened (as Wald ends are)
+_EDGE = 40.0
+
+
+def interval_pivots(space: ThetaSpace, theta_true: torch.Tensor, result: FitResult) -> torch.Tensor:
+    """Where the truth lies relative to each free parameter's interval, ``[n, k]``.
+
+    ``Z95 × (θ − θ̂) / h`` in the unconstrained coordinates, with ``h`` the interval's
+    half-width on the truth's side: the Wald z-score for a Wald interval, and in every case
+    ``|pivot| ≤ Z95`` exactly where the interval covers ``theta_true`` (``[n, d]``). NaN
+    where the fit has no interval (an infinite sd: the whole range, whatever a factor).
+    """
+    free = space.free_mask.to(result.theta_hat.device)
+
+    def unconstrained(theta: torch.Tensor) -> torch.Tensor:
+        return space.to_unconstrained(theta.to(result.theta_hat))[:, free]
+
+    true, hat = unconstrained(theta_true), unconstrained(result.theta_hat)
+    low, high = unconstrained(result.intervals.low), unconstrained(result.intervals.high)
+    half = torch.where(true >= hat, high - hat, hat - low)
+    # the ratio first: a truth on an end gives exactly Z95, as covered as score_recovery counts it
+    pivot = torch.where(true == hat, torch.zeros_like(hat), Z95 * ((true - hat) / half))
+    return torch.where(result.intervals.std[:, free].isinf(), torch.nan, pivot)
+
+
+@dataclass
+class Calibration:
+    """Per free parameter (``names``), the factor ``[k]`` by which 95% intervals widen (or
+    narrow) to cover in 95% of simulated datasets, and the pivots ``[n_datasets, n_agents, k]``
+    it was read from (:func:`interval_pivots`). Refits without an interval for a parameter
+    do not count (no factor changes theirs); where none has one, or the quantile is infinite
+    (refits missing with zero-width intervals), the factor is infinite: nothing then vouches
+    for the real intervals, which it leaves without any."""
+
+    names: list[str]
+    factor: torch.Tensor
+    pivots: torch.Tensor
+
+    @classmethod
+    def from_pivots(cls, names: list[str], pivots: torch.Tensor) -> Calibration:
+        """The factor as the 95% quantile of ``|pivot|`` over datasets and agents, over Z95."""
+        if pivots.ndim != 3 or pivots.shape[-1] != len(names):
+            raise ValueError(
+                f"pivots: expected [n_datasets, n_agents, {len(names)}], got {list(pivots.shape)}"
+            )
+        size = pivots.abs().flatten(0, 1)
+        top = torch.finfo(size.dtype).max
+        quantile = torch.nanquantile(size.clamp_max(top), 0.95, dim=0)
+        unknown = quantile.isnan() | (quantile >= top / 2)
+        factor = torch.where(unknown, torch.inf, quantile / Z95)
+        return cls(names=list(names), factor=factor, pivots=pivots)
+
+    def to_dict(self) -> dict:
+        """The JSON form: the datasets, the factor per parameter (null where infinite) and
+        the pivots per dataset, agent and parameter (null where the refit had no interval)."""
+        return {
+            "n_datasets": self.pivots.shape[0],
+            "factor": {
+                name: c if math.isfinite(c) else None
+                for name, c in zip(self.names, self.factor.tolist(), strict=True)
+            },
+            "pivots": [
+                [[None if math.isnan(v) else v for v in agent] for agent in dataset]
+                for dataset in self.pivots.tolist()
+            ],
+        }
+
+    def apply(self, space: ThetaSpace, result: FitResult) -> FitResult:
+        """``result`` with every free parameter's interval scaled by its factor about θ̂ (in
+        the unconstrained coordinates as :meth:`~irc_torchrl.theta.ThetaSpace.to_unconstrained`
+        clamps them, so it stays inside θ's bounds; a fit without an interval stays without)
+        and its standard deviation and covariance scaled alike."""
+        if space.free_names != self.names:
+            raise ValueError(
+                f"space: expected the free parameters {self.names}, got {space.free_names}"
+            )
+        hat = result.theta_hat
+        free = space.free_mask.to(hat.device)
+        scale = torch.ones(space.dim, dtype=hat.dtype, device=hat.device)
+        scale[free] = self.factor.to(scale)
+        u_hat = space.to_unconstrained(hat)
+
+        old = result.intervals
+        # no interval (an infinite sd, the whole range) stays without one; an infinite factor
+        # (nothing vouches for the intervals) leaves none
+        kept = ~free | old.std.isinf()
+        voided = free & scale.isinf()
+
+        def scaled(end: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
+            u = u_hat + scale * (space.to_unconstrained(end) - u_hat)
+            moved = torch.where(voided, bound, space.from_unconstrained(u.clamp(-_EDGE, _EDGE)))
+            return torch.where(kept, end, moved)
+
+        low = scaled(old.low, space.low(hat.dtype, hat.device).expand_as(hat))
+        high = scaled(old.high, space.high(hat.dtype, hat.device).expand_as(hat))
+        std = torch.where(kept, old.std, torch.where(voided, torch.inf, old.std * scale))
+        factor = self.factor.to(hat)
+        covariance = old.covariance * factor.unsqueeze(-1) * factor
+        none = factor.isinf()
+        intervals = dataclasses.replace(
+            old,
+            std=std,
+            low=low,
+            high=high,
+            identified=narrow(space, low, high) & torch.isfinite(std),
+            covariance=torch.where(none.unsqueeze(-1) | none, torch.inf, covariance),
+        )
+        return dataclasses.replace(result, intervals=intervals)
+
+
+def format_factors(factor: dict[str, float | None]) -> str:
+    """``"g_v 1.32, g_w none, ..."``: a :meth:`Calibration.to_dict` factor, for tables."""
+    return ", ".join(f"{n} {'none' if c is None else format(c, '.2f')}" for n, c in factor.items())
+
+
+def simulate_at_fits(
+    model: TaskModel,
+    actor: TensorDictSequential,
+    result: FitResult,
+    world: torch.Tensor,
+    n_trials: int,
+    seed: int,
+) -> TensorDict:
+    """Trials ``[n_agents, n_trials, T]`` of agents acting as fitted: each at its θ̂ with
+    its fitted motor noise (``result.nuisance``, log sds), in its world ``[n_agents, d]``.
+    They run on the actor's device and come back on the CPU, as recordings are read."""
+    device = next(actor.parameters()).device
+    noise = result.nuisance.exp().unsqueeze(1).float()  # [agents, 1 (trials), action]
+    policy = motor_noise_policy(actor, model.action_spec.to(device), noise)
+    theta, world = (x.float().to(device) for x in (result.theta_hat, world))
+    return simulate_agents(model, policy, theta, n_trials, task_theta=world, seed=seed).cpu()
+
+
+def calibrate_intervals(
+    space: ThetaSpace,
+    theta_generating: torch.Tensor,
+    refit: Callable[[int], dict[str, FitResult]],
+    n_datasets: int,
+) -> dict[str, Calibration]:
+    """One :class:`Calibration` per estimator from ``n_datasets`` simulated datasets.
+
+    Args:
+        space: the fits' θ space (its free parameters are calibrated).
+        theta_generating: the θ ``[n_agents, d]`` every dataset is simulated at (each agent's
+            θ̂ from the real data).
+        refit: ``refit(i)`` simulates dataset ``i`` at ``theta_generating`` and fits it the way
+            the real data were, returning each estimator's :class:`FitResult`.
+        n_datasets: how many datasets (each holds one per agent).
+    """
+    if n_datasets < 1:
+        raise ValueError(f"n_datasets: expected an integer ≥ 1, got {n_datasets}")
+    theta_generating = space.validate(theta_generating, "theta_generating")
+    pivots: dict[str, list[torch.Tensor]] = {}
+    for i in range(n_datasets):
+        for method, result in refit(i).items():
+            pivots.setdefault(method, []).append(interval_pivots(space, theta_generating, result))
+    return {
+        method: Calibration.from_pivots(space.free_names, torch.stack(rows))
+        for method, rows in pivots.items()
+    }

@@ -1,0 +1,241 @@
+"""Intervals calibrated by simulation: pivots, factors, widened intervals, the 1D and 2D runs.
+
+Fixed seeds throughout; tolerances are stated where they are asserted.
+"""
+
+import pytest
+import torch
+
+from irc_torchrl.algorithms.calibration import Calibration, calibrate_intervals, interval_pivots
+from irc_torchrl.algorithms.ensemble import load_ensemble_policy
+from irc_torchrl.algorithms.fit import FitResult, fit_theta
+from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
+from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
+from irc_torchrl.config import FitConfig
+from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.likelihood import BoltzmannActionModel
+from irc_torchrl.objectives.fisher import Z95, fisher_intervals
+from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+TEMPERATURE = 0.5
+
+
+def _result(space, theta_hat: torch.Tensor, hessian: torch.Tensor) -> FitResult:
+    """A fit result with Wald intervals from ``hessian`` over the free θ (no nuisance)."""
+    u = space.to_unconstrained(theta_hat)[:, space.free_mask]
+    n = theta_hat.shape[0]
+    return FitResult(
+        theta_hat=theta_hat,
+        nuisance=torch.zeros(n, 0, dtype=theta_hat.dtype),
+        log_likelihood=torch.zeros(n, dtype=theta_hat.dtype),
+        intervals=fisher_intervals(space, theta_hat, u, hessian),
+        converged=torch.ones(n, dtype=torch.bool),
+        iterations=1,
+        names=space.names,
+        information=hessian,
+    )
+
+
+@pytest.fixture(scope="module")
+def space2d():
+    return Firefly2DModel().theta_space
+
+
+@pytest.fixture(scope="module")
+def wald(space2d):
+    """Wald intervals of 64 fits of random θ̂ and curvature, and truths around them."""
+    g = torch.Generator().manual_seed(0)
+    n, k = 64, len(space2d.free_names)
+    theta_hat = space2d.sample((n,), generator=g, dtype=torch.float64)
+    scale = torch.exp(3 * torch.rand(n, k, generator=g, dtype=torch.float64))
+    result = _result(space2d, theta_hat, torch.diag_embed(scale**2))
+    u = space2d.to_unconstrained(theta_hat)
+    u[:, space2d.free_mask] += 1.5 * torch.randn(n, k, generator=g, dtype=torch.float64) / scale
+    return result, space2d.from_unconstrained(u)
+
+
+def test_an_interval_covers_exactly_where_its_pivot_is_within_the_quantile(space2d, wald):
+    result, truth = wald
+    free = space2d.free_mask
+    pivot = interval_pivots(space2d, truth, result)
+    covered = (result.intervals.low <= truth) & (truth <= result.intervals.high)
+    assert 0.5 < covered[:, free].double().mean() < 0.95  # both kinds occur
+    assert torch.equal(pivot.abs() <= Z95, covered[:, free])
+    # a Wald interval's pivot is the z-score in the fit's coordinates
+    z = (space2d.to_unconstrained(truth) - space2d.to_unconstrained(result.theta_hat))[:, free]
+    u_sd = (result.information.diagonal(dim1=-2, dim2=-1)) ** -0.5
+    torch.testing.assert_close(pivot, z / u_sd)
+
+
+def test_the_factor_is_the_pivots_95_percent_quantile_over_z95(space2d):
+    k = len(space2d.free_names)
+    pivots = torch.linspace(-4, 4, 2 * 50 * k, dtype=torch.float64).view(2, 50, k)
+    calibration = Calibration.from_pivots(space2d.free_names, pivots)
+    expected = torch.quantile(pivots.abs().flatten(0, 1), 0.95, dim=0) / Z95
+    torch.testing.assert_close(calibration.factor, expected)
+    # refits without an interval do not count; with none, nothing vouches for the intervals
+    pivots[1, :, 0], pivots[:, :, 1] = torch.nan, torch.nan
+    calibration = Calibration.from_pivots(space2d.free_names, pivots)
+    assert calibration.factor[0] == torch.quantile(pivots[0, :, 0].abs(), 0.95) / Z95
+    assert calibration.factor[1].isinf()
+    # a quantile among refits missing with zero-width intervals (infinite pivots) is infinite
+    pivots[:, :10, 2] = torch.inf
+    assert Calibration.from_pivots(space2d.free_names, pivots).factor[2].isinf()
+    for bad in (pivots[0], pivots[..., :3]):
+        with pytest.raises(ValueError, match="pivots: expected"):
+            Calibration.from_pivots(space2d.free_names, bad)
+
+
+@pytest.mark.parametrize("factor", [0.5, 1.0, 2.5])
+def test_calibrated_intervals_cover_where_the_pivot_is_within_factor_times_z95(
+    space2d, wald, factor
+):
+    result, truth = wald
+    free = space2d.free_mask
+    k = len(space2d.free_names)
+    calibration = Calibration(space2d.free_names, torch.full((k,), factor), torch.zeros(1, 1, k))
+    calibrated = calibration.apply(space2d, result)
+    iv = calibrated.intervals
+    covered = (iv.low <= truth) & (truth <= iv.high)
+    pivot = interval_pivots(space2d, truth, result)
+    assert torch.equal(covered[:, free], pivot.abs() <= factor * Z95 * (1 + 1e-9))
+    # scaled about θ̂ in the fit's coordinates; the standard deviations scale alike
+    torch.testing.assert_close(interval_pivots(space2d, truth, calibrated), pivot / factor)
+    torch.testing.assert_close(iv.std, result.intervals.std * factor)
+    torch.testing.assert_close(iv.covariance, result.intervals.covariance * factor**2)
+    assert (iv.low <= calibrated.theta_hat).all() and (calibrated.theta_hat <= iv.high).all()
+    if factor == 1.0:
+        torch.testing.assert_close(iv.low, result.intervals.low)
+        torch.testing.assert_close(iv.high, result.intervals.high)
+
+
+def test_calibration_keeps_fixed_parameters_and_intervals_over_the_whole_range(space2d):
+    space = space2d.fix(g_v=1.0)
+    theta_hat = space.default(torch.float64).repeat(2, 1)
+    hessian = torch.eye(len(space.free_names), dtype=torch.float64).repeat(2, 1, 1) * 1e4
+    hessian[1, 0, 0] = 0.0  # no curvature: agent 1's first free parameter has no interval
+    result = _result(space, theta_hat, hessian)
+    k = len(space.free_names)
+    calibrated = Calibration(space.free_names, torch.full((k,), 0.5), torch.zeros(1, 1, k)).apply(
+        space, result
+    )
+    fixed = space.index("g_v")
+    assert (calibrated.intervals.low[:, fixed] == 1.0).all()
+    assert (calibrated.intervals.high[:, fixed] == 1.0).all()
+    first = space.index(space.free_names[0])
+    assert calibrated.intervals.std[1, first].isinf()
+    assert calibrated.intervals.low[1, first] == result.intervals.low[1, first]
+    assert calibrated.intervals.high[1, first] == result.intervals.high[1, first]
+    assert not calibrated.intervals.identified[1, first]
+    zero = Calibration(space.free_names, torch.zeros(k), torch.zeros(1, 1, k)).apply(space, result)
+    assert zero.intervals.std[1, first].isinf() and not zero.intervals.std.isnan().any()
+    # an infinite factor (no refit had an interval) leaves no interval for that parameter
+    factor = torch.ones(k)
+    factor[1] = torch.inf
+    void = Calibration(space.free_names, factor, torch.zeros(1, 1, k)).apply(space, result)
+    second = space.index(space.free_names[1])
+    assert void.intervals.std[:, second].isinf().all()
+    assert (void.intervals.low[:, second] == space[space.free_names[1]].low).all()
+    assert (void.intervals.high[:, second] == space[space.free_names[1]].high).all()
+    assert not void.intervals.identified[:, second].any()
+    assert void.intervals.covariance[:, 1, :].isinf().all()
+    assert void.intervals.covariance[:, :, 1].isinf().all()
+    assert void.intervals.covariance[0, 2, 2].isfinite()
+    torch.testing.assert_close(void.intervals.low[0, first], result.intervals.low[0, first])
+    with pytest.raises(ValueError, match="space: expected the free parameters"):
+        Calibration(space2d.free_names, torch.ones(k + 1), torch.zeros(1, 1, k + 1)).apply(
+            space, result
+        )
+
+
+def test_calibrating_honest_intervals_leaves_them_nearly_as_they_are(
+    firefly1d_model, trained_q
+):
+    """On the 1D task the likelihood is exact and the Wald intervals honest, so the factors
+    come out near 1. 12 agents from the prior (seed 0), 100 trials each (seed 1), calibrated on
+    3 datasets each (36 pivots per parameter). Tolerance: factors in [0.7, 1.5] (measured 0.91
+    for g_a and 0.80 for log σ₀); intervals narrowed 3-fold beforehand come out with factors
+    exactly 3 times as large (the pivots scale with the half-widths)."""
+    model, space = firefly1d_model, firefly1d_model.theta_space
+    policy = boltzmann_policy(model, trained_q, TEMPERATURE)
+
+    def fit(theta: torch.Tensor, seed: int) -> FitResult:
+        trials = simulate_agents(model, policy, theta, 100, task_theta=space.default(), seed=seed)
+        loss = InverseRationalLoss(
+            model, BoltzmannActionModel(trained_q, TEMPERATURE), n_agents=theta.shape[0]
+        )
+        return fit_theta(loss, trials, n_starts=2, n_screen=16, seed=0)
+
+    theta_true = space.sample((12,), generator=torch.Generator().manual_seed(0))
+    result = fit(theta_true, 1)
+    k = len(space.free_names)
+    narrowing = Calibration(space.free_names, torch.full((k,), 1 / 3), torch.zeros(1, 1, k))
+
+    def refit(i: int) -> dict[str, FitResult]:
+        honest = fit(result.theta_hat.float(), 100 + i)
+        return {"honest": honest, "narrow": narrowing.apply(space, honest)}
+
+    calibrations = calibrate_intervals(space, result.theta_hat.float(), refit, 3)
+    factor = calibrations["honest"].factor
+    assert ((factor > 0.7) & (factor < 1.5)).all(), factor
+    torch.testing.assert_close(calibrations["narrow"].factor, 3 * factor)
+    with pytest.raises(ValueError, match="n_datasets: expected an integer ≥ 1"):
+        calibrate_intervals(space, result.theta_hat.float(), refit, 0)
+
+
+def test_motor_noise_may_differ_per_agent_and_action_dimension():
+    # each agent acts with its own noise: the residual about the actor's output, where that
+    # lies 3 sd or more inside the bounds (clipping cannot truncate it), has that sd (within
+    # 10%; 470-1540 actions each, measured within 0.5%)
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    theta = model.theta_space.sample((2,), generator=torch.Generator().manual_seed(0))
+    std = torch.tensor([[[0.05, 0.2]], [[0.15, 0.1]]])
+    trials = simulate_agents(model, motor_noise_policy(actor, model.action_spec, std), theta, 100)
+    steps = torch.arange(trials.shape[-1]).view(1, 1, -1, 1).expand(*trials.shape, 1)
+    features = model.belief_features(
+        trials["belief", "mean"], trials["belief", "cov"], trials["target"], steps, trials["theta"]
+    )
+    with torch.no_grad():
+        output = FeaturePolicy(actor)(features)
+    residual = trials["action"] - output
+    inside = (output.abs() < 1 - 3 * std.unsqueeze(1)) & trials["mask"].unsqueeze(-1)
+    for agent in range(2):
+        for dim in range(2):
+            r = residual[agent][..., dim][inside[agent][..., dim]]
+            assert r.std().item() == pytest.approx(std[agent, 0, dim].item(), rel=0.1)
+    with pytest.raises(ValueError, match="motor_noise: expected positive"):
+        motor_noise_policy(actor, model.action_spec, torch.tensor([0.1, 0.0]))
+
+
+def test_recovery_reports_intervals_calibrated_on_simulated_refits():
+    """``calibrate=1`` on a tiny run (2 agents × 10 trials, map, 4 iterations): each
+    parameter's calibrated coverage is what its pivot and factor say, and every calibrated
+    interval holds θ̂ inside θ's bounds. Four iterations leave the refits without intervals,
+    so no factor is known (null) and the intervals span θ's range: nothing vouches for them."""
+    config = Recovery2DConfig(
+        n_prior_agents=2, n_mistaken_agents=0, n_trials=10, methods="map", calibrate=1,
+        fit=FitConfig(n_screen=2, n_starts=1, max_iter=4, curvature="bfgs",
+                      covariance="sandwich"),
+    )  # fmt: skip
+    trials, summary, fits = recover_firefly2d(config)
+    space = Firefly2DModel().theta_space
+    calibrated = summary["methods"]["map"]["calibrated"]
+    assert calibrated["n_datasets"] == 1 and list(calibrated["factor"]) == space.free_names
+    # no refit with an interval: no factor (null in the JSON), the intervals the whole range
+    factor = torch.tensor(
+        [torch.inf if c is None else c for c in calibrated["factor"].values()], dtype=torch.float64
+    )
+    assert factor.isinf().all()
+    truth = trials["theta"][:, 0, 0].double()
+    pivot = interval_pivots(space, truth, fits["map"])
+    for j, name in enumerate(space.free_names):
+        inside = (pivot[:, j].abs() <= factor[j] * Z95 * (1 + 1e-9)) | pivot[:, j].isnan()
+        expected = inside.double().mean().item()
+        assert calibrated["parameters"][name]["coverage"] == pytest.approx(expected)
+        hats = fits["map"].theta_hat[:, space.index(name)]
+        for agent, hat in zip(calibrated["agents"], hats, strict=True):
+            low, high = agent["ci_low"][name], agent["ci_high"][name]
+            assert space[name].low <= low <= hat.item() <= high <= space[name].high
+            assert high - low == pytest.approx(space[name].high - space[name].low)
+    assert summary["timings"]["calibrate_s"] > 0
