@@ -6,7 +6,12 @@ The experiment runners (:func:`~irc_torchrl.algorithms.demo.run_demo`,
 :mod:`irc_torchrl.config`, which imports this package, so they are imported from their modules.
 """
 
-from irc_torchrl.algorithms.calibration import Calibration, calibrate_intervals, interval_pivots
+from irc_torchrl.algorithms.calibration import (
+    Calibration,
+    calibrate_intervals,
+    interval_pivots,
+    simulate_at_fits,
+)
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.ensemble import (
     critic_slices,
@@ -39,6 +44,7 @@ __all__ = [
     "particle_check",
     "profile_intervals",
     "simulate_agents",
+    "simulate_at_fits",
     "stop_sharpness",
     "theta_sensitivity",
     "train_ensemble",
