@@ -30,6 +30,7 @@ from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
     "Calibration",
+    "agent_intervals",
     "calibrate_intervals",
     "format_factors",
     "interval_pivots",
@@ -144,6 +145,16 @@ class Calibration:
             covariance=torch.where(none.unsqueeze(-1) | none, torch.inf, covariance),
         )
         return dataclasses.replace(result, intervals=intervals)
+
+
+def agent_intervals(result: FitResult) -> list[dict]:
+    """Per agent, the intervals of :meth:`FitResult.agent` (``ci_low``, ``ci_high``, ``std``,
+    ``identified``): what a calibrated fit changes, for ``summary.json``."""
+    keys = ("ci_low", "ci_high", "std", "identified")
+    return [
+        {k: v for k, v in result.agent(i).items() if k in keys}
+        for i in range(len(result.theta_hat))
+    ]
 
 
 def format_factors(factor: dict[str, float | None]) -> str:

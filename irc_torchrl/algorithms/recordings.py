@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 import irc_torchrl
 from irc_torchrl.algorithms.calibration import (
     Calibration,
+    agent_intervals,
     calibrate_intervals,
     format_factors,
     simulate_at_fits,
@@ -338,6 +339,14 @@ def fit_recordings(
     return summary
 
 
+def _by_trial_count(recordings: list[TensorDict]) -> dict[int, list[int]]:
+    """The indices of the recordings per number of trials (each group is fitted as one batch)."""
+    groups: dict[int, list[int]] = {}
+    for i, recording in enumerate(recordings):
+        groups.setdefault(recording.shape[0], []).append(i)
+    return groups
+
+
 def _fit_groups(
     model: TaskModel,
     action_model: CensoredGaussianActionModel,
@@ -356,9 +365,7 @@ def _fit_groups(
     with ``config.particles``, each recording's :func:`particle_check` at θ̂ per method
     (``None`` without).
     """
-    groups: dict[int, list[int]] = {}
-    for i, recording in enumerate(recordings):
-        groups.setdefault(recording.shape[0], []).append(i)
+    groups = _by_trial_count(recordings)
     methods = ["map"] if method == "map" else ["map", "marginal"]
     parts: dict[str, list[tuple[list[int], FitResult]]] = {m: [] for m in methods}
     beliefs: list[TensorDict | None] = [None] * len(recordings)
@@ -435,9 +442,7 @@ def _calibrate_fits(
     trials), fitted by :func:`_fit_groups` as the recordings were (without particle checks)."""
     result = fits[list(fits)[-1]]
     world = torch.stack([r["task_theta"][0, 0] for r in recordings])
-    groups: dict[int, list[int]] = {}
-    for i, recording in enumerate(recordings):
-        groups.setdefault(recording.shape[0], []).append(i)
+    groups = _by_trial_count(recordings)
     quiet = dataclasses.replace(config, particles=0)
 
     def refit(k: int) -> dict[str, FitResult]:
@@ -470,9 +475,8 @@ def _add_calibrated(
     calibrated intervals' coverage, into one method's :func:`_scored` entry."""
     calibrated = calibration.apply(space, result)
     scored["calibration"] = calibration.to_dict()
-    for i, agent in enumerate(scored["agents"]):
-        one = calibrated.agent(i)
-        agent["calibrated"] = {k: one[k] for k in ("ci_low", "ci_high", "std", "identified")}
+    for agent, intervals in zip(scored["agents"], agent_intervals(calibrated), strict=True):
+        agent["calibrated"] = intervals
     if theta_true is not None:
         scored["calibrated_parameters"] = score_recovery(
             space.free_names, space.names, theta_true, calibrated

@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 from irc_torchrl.algorithms.calibration import (
     Calibration,
+    agent_intervals,
     calibrate_intervals,
     format_factors,
     simulate_at_fits,
@@ -247,10 +248,7 @@ def recover_firefly2d(
             summary["methods"][method]["calibrated"] = {
                 **calibration.to_dict(),
                 "parameters": scored["parameters"],
-                "agents": [
-                    {k: agent[k] for k in ("ci_low", "ci_high", "std", "identified")}
-                    for agent in scored["agents"]
-                ],
+                "agents": agent_intervals(calibrated),
             }
         timings["calibrate_s"] = time.perf_counter() - begin
     summary["timings"] = timings
