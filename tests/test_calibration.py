@@ -6,7 +6,13 @@ Fixed seeds throughout; tolerances are stated where they are asserted.
 import pytest
 import torch
 
-from irc_torchrl.algorithms.calibration import Calibration, calibrate_intervals, interval_pivots
+from irc_torchrl.algorithms.calibration import (
+    MIN_REFITS,
+    Calibration,
+    calibrate_intervals,
+    format_factors,
+    interval_pivots,
+)
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
@@ -85,6 +91,22 @@ def test_the_factor_is_the_pivots_95_percent_quantile_over_z95(space2d):
     for bad in (pivots[0], pivots[..., :3]):
         with pytest.raises(ValueError, match="pivots: expected"):
             Calibration.from_pivots(space2d.free_names, bad)
+
+
+def test_a_factor_on_few_refits_says_how_many_datasets_would_pin_it(space2d):
+    # the refits a factor rests on are counted per parameter (those with an interval); below
+    # MIN_REFITS the table says so and how many datasets would reach it
+    names = space2d.free_names
+    pivots = torch.ones(2, 10, len(names), dtype=torch.float64)
+    pivots[1, :4, 0] = torch.nan  # four refits without an interval for the first parameter
+    pivots[..., 1] = torch.nan  # none for the second: more refits would not give it a factor
+    entry = Calibration.from_pivots(names, pivots).to_dict()
+    assert list(entry["refits"].values()) == [16, 0] + [20] * (len(names) - 2)
+    caution = f"rests on 16 refit(s) only; about {MIN_REFITS} pin a 95% quantile: calibrate=5)"
+    assert format_factors(entry).endswith(caution)
+    assert f"{names[1]} none" in format_factors(entry)
+    enough = Calibration.from_pivots(names, torch.ones(1, MIN_REFITS, len(names))).to_dict()
+    assert "refits" not in format_factors(enough)
 
 
 @pytest.mark.parametrize("factor", [0.5, 1.0, 2.5])

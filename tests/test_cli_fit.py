@@ -136,6 +136,7 @@ def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulate
         assert agent["calibrated"]["std"][name] == pytest.approx(factor * agent["std"][name])
     table = format_fit(summary)
     assert "calibrated 95% CI" in table and "intervals calibrated on 1 simulated" in table
+    assert "rests on 1 refit(s) only; about 40 pin a 95% quantile: calibrate=40)" in table
     assert "truth inside the calibrated 95% interval" in table
 
 

@@ -29,6 +29,7 @@ from irc_torchrl.objectives.fisher import Z95, narrow
 from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
+    "MIN_REFITS",
     "Calibration",
     "agent_intervals",
     "calibrate_intervals",
@@ -39,6 +40,8 @@ __all__ = [
 
 #: unconstrained coordinates are clamped here when intervals are widened (as Wald ends are)
 _EDGE = 40.0
+#: refits per parameter below which a factor's 95% quantile is read off its last one or two
+MIN_REFITS = 40
 
 
 def interval_pivots(space: ThetaSpace, theta_true: torch.Tensor, result: FitResult) -> torch.Tensor:
@@ -89,15 +92,22 @@ class Calibration:
         factor = torch.where(unknown, torch.inf, quantile / Z95)
         return cls(names=list(names), factor=factor, pivots=pivots)
 
+    @property
+    def refits(self) -> torch.Tensor:
+        """Per parameter, the refits with an interval ``[k]``: what its factor rests on."""
+        return (~self.pivots.isnan()).flatten(0, 1).sum(0)
+
     def to_dict(self) -> dict:
-        """The JSON form: the datasets, the factor per parameter (null where infinite) and
-        the pivots per dataset, agent and parameter (null where the refit had no interval)."""
+        """The JSON form: the datasets, the factor and the refits it rests on per parameter
+        (null where infinite) and the pivots per dataset, agent and parameter (null where the
+        refit had no interval)."""
         return {
             "n_datasets": self.pivots.shape[0],
             "factor": {
                 name: c if math.isfinite(c) else None
                 for name, c in zip(self.names, self.factor.tolist(), strict=True)
             },
+            "refits": dict(zip(self.names, self.refits.tolist(), strict=True)),
             "pivots": [
                 [[None if math.isnan(v) else v for v in agent] for agent in dataset]
                 for dataset in self.pivots.tolist()
@@ -157,9 +167,21 @@ def agent_intervals(result: FitResult) -> list[dict]:
     ]
 
 
-def format_factors(factor: dict[str, float | None]) -> str:
-    """``"g_v 1.32, g_w none, ..."``: a :meth:`Calibration.to_dict` factor, for tables."""
-    return ", ".join(f"{n} {'none' if c is None else format(c, '.2f')}" for n, c in factor.items())
+def format_factors(calibration: dict) -> str:
+    """``"g_v 1.32, g_w none, ..."`` from a :meth:`Calibration.to_dict`, for tables, with a
+    caution where a factor rests on fewer than :data:`MIN_REFITS` refits."""
+    text = ", ".join(
+        f"{n} {'none' if c is None else format(c, '.2f')}" for n, c in calibration["factor"].items()
+    )
+    # a parameter no refit has an interval for gets none from more refits either
+    fewest = min((n for n in calibration.get("refits", {}).values() if n), default=MIN_REFITS)
+    if fewest < MIN_REFITS:
+        enough = math.ceil(calibration["n_datasets"] * MIN_REFITS / max(fewest, 1))
+        text += (
+            f" (a factor rests on {fewest} refit(s) only; about {MIN_REFITS} pin a 95% quantile: "
+            f"calibrate={enough})"
+        )
+    return text
 
 
 def simulate_at_fits(

@@ -580,7 +580,7 @@ def format_fit(summary: dict[str, Any]) -> str:
         if calibration:
             lines.append(
                 f"{method}: intervals calibrated on {calibration['n_datasets']} simulated "
-                f"dataset(s) per recording, scaled by {format_factors(calibration['factor'])}"
+                f"dataset(s) per recording, scaled by {format_factors(calibration)}"
             )
         for key, what in (("parameters", ""), ("calibrated_parameters", "calibrated ")):
             if key in part:

@@ -434,7 +434,7 @@ def format_recovery(summary: dict) -> str:
         if calibrated:
             lines.append(
                 f"  calibrated by {calibrated['n_datasets']} simulated dataset(s) per agent "
-                f"(interval factors: {format_factors(calibrated['factor'])}):"
+                f"(interval factors: {format_factors(calibrated)}):"
             )
             lines += [f"  {row}" for row in format_parameters(calibrated["parameters"])]
     return "\n".join(lines)
