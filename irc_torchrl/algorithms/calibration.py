@@ -176,7 +176,7 @@ def format_factors(calibration: dict) -> str:
     # a parameter no refit has an interval for gets none from more refits either
     fewest = min((n for n in calibration.get("refits", {}).values() if n), default=MIN_REFITS)
     if fewest < MIN_REFITS:
-        enough = math.ceil(calibration["n_datasets"] * MIN_REFITS / max(fewest, 1))
+        enough = math.ceil(calibration["n_datasets"] * MIN_REFITS / fewest)
         text += (
             f" (a factor rests on {fewest} refit(s) only; about {MIN_REFITS} pin a 95% quantile: "
             f"calibrate={enough})"
