@@ -508,12 +508,13 @@ def test_bfgs_reaches_the_newton_fit_with_second_derivatives_only_at_the_end(
     torch.testing.assert_close(bfgs.intervals.std, newton.intervals.std, rtol=1e-2, atol=0)
 
 
-def test_a_start_is_measured_against_its_own_agents_converged_maximum():
+def test_a_start_is_measured_against_its_own_agents_settled_maximum():
     """``_behind_best``: the gap that lets ``fit_theta`` abandon a start which cannot overtake
-    its agent's converged maximum (the batch would otherwise wait on it)."""
+    the best of its agent's rows that are settled near their maximum (the batch would
+    otherwise wait on it)."""
     value = torch.tensor([5.0, 1.0, 3.0, 4.0], dtype=torch.float64)  # two agents, two starts
-    converged = torch.tensor([False, True, False, False])
-    behind = _behind_best(value, converged, 2)
+    settled = torch.tensor([False, True, False, False])
+    behind = _behind_best(value, settled, 2)
     assert behind.tolist() == [4.0, 0.0, -math.inf, -math.inf]
 
 
