@@ -247,13 +247,25 @@ def fit_theta(
         # while the model promises much, is not θ̂
         flat_top = (idle[active] >= IDLE) & (decrement < SWITCH)
         converged[active] = near[active] & ((decrement < tol) | flat_top)
-        # a start below the best of its agent's rows within SWITCH of their maximum by more
-        # than its own model promises to gain is abandoned: it cannot overtake, and the batch
-        # would wait for it
+        # a start below the best of its agent's rows within SWITCH of their maximum is
+        # abandoned where it cannot overtake (it lies further below than its own model promises
+        # to gain) or can only end where that row ends (it lies within SWITCH of it under that
+        # row's curvature): the batch would wait for it
         settled = converged.clone()
         settled[active] |= near[active] & (decrement < SWITCH)
-        behind = _behind_best(value, settled, n_starts)[active]
-        stalled[active] |= ~converged[active] & (behind > decrement.clamp_min(SWITCH))
+        behind, best = (x[active] for x in _behind_best(value, settled, n_starts))
+        apart = params[active] - params[best]
+        basin = 0.5 * (apart.unsqueeze(-2) @ _absolute(hessian[best]) @ apart.unsqueeze(-1))
+        stalled[active] |= (
+            ~converged[active]
+            & (best != active)
+            & ((behind > decrement.clamp_min(SWITCH)) | ((behind > 0) & (basin.view(-1) < SWITCH)))
+        )
+        # the rows that stop here take no step
+        moving = ~converged[active] & ~stalled[active]
+        if not moving.any():
+            break
+        active, h, g, d, decrement = (x[moving] for x in (active, h, g, d, decrement))
         step, d = _damped_step(_absolute(h), g, d)
         # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
         step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
@@ -265,7 +277,7 @@ def fit_theta(
             params[active] + step, rows[active], landing
         )
         gain = value[active] - trial_value
-        accept = (gain > 1e-12) & ~converged[active]
+        accept = gain > 1e-12
         # Fisher scoring has done its part once it promises or makes little progress
         switch = ~near[active] & ((decrement < SWITCH) | (accept & (gain < SWITCH)))
         # the gain ratio: how much of the decrease the quadratic model promised was made
@@ -538,11 +550,22 @@ def _by_rows(fn: Callable, params: torch.Tensor, trials: TensorDictBase, budget:
     return tuple(None if x[0] is None else torch.cat(x) for x in zip(*parts, strict=True))
 
 
-def _behind_best(value: torch.Tensor, settled: torch.Tensor, n_starts: int) -> torch.Tensor:
+def _behind_best(
+    value: torch.Tensor, settled: torch.Tensor, n_starts: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """How far each row's negative log-likelihood lies above the best ``settled`` row of its
-    agent (rows agent-major, ``n_starts`` per agent; ``-inf`` where the agent has none)."""
-    reached = torch.where(settled, value, torch.inf).view(-1, n_starts).amin(1)
-    return value - reached.repeat_interleave(n_starts)
+    agent, and that row (rows agent-major, ``n_starts`` per agent; ``-inf`` and the row itself
+    where the agent has none)."""
+    reached, where = torch.where(settled, value, torch.inf).view(-1, n_starts).min(1)
+
+    def per_row(x: torch.Tensor) -> torch.Tensor:
+        return x.repeat_interleave(n_starts)
+
+    rows = torch.arange(len(value), device=value.device)
+    best = torch.where(
+        per_row(torch.isfinite(reached)), per_row(where) + rows - rows % n_starts, rows
+    )
+    return value - per_row(reached), best
 
 
 def _pin_bounds(
