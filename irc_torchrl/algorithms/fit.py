@@ -8,9 +8,7 @@ drawn from the model along the recorded trials, from the same single backward pa
 gradient; positive semi-definite and, like Gauss–Newton, reliable far from θ̂ where the Hessian
 is indefinite), handing over near θ̂ to the exact Hessian (``"fisher"``) or to BFGS updates of
 the last Fisher matrix from the gradients alone (``"bfgs"``: no second derivatives until the
-intervals, the cheapest where a Hessian costs many gradients). Rows converge at their own pace;
-an iteration costs one pass where the steps land, which gives the rows taking them all they
-need next (Fisher rows their next curvature, BFGS rows their gradient).
+intervals, the cheapest where a Hessian costs many gradients). Rows converge at their own pace.
 The exact Hessian at θ̂, the observed Fisher information, gives the intervals in every case.
 """
 
@@ -68,9 +66,6 @@ HESSIAN_TRIALS = 400
 GRAD_TRIALS = 4000
 #: Fisher scoring hands a row to Newton's method once it promises or gains less than this (nats)
 SWITCH = 1.0
-#: what one pass computes for a row, dearer in turn: its value; with the gradient; with the
-#: gradient and a sampled Fisher information; with the exact Hessian
-_VALUE, _GRADIENT, _FISHER, _HESSIAN = range(4)
 
 
 @dataclass
@@ -193,40 +188,42 @@ def fit_theta(
     def scores(p: torch.Tensor, data: TensorDictBase):
         return _trial_scores(loss, k, p, data)
 
-    def value_only(p: torch.Tensor, data: TensorDictBase):
-        with torch.no_grad():
-            return (nll(p, data),)
+    def evaluate(p: torch.Tensor, data: TensorDictBase, with_grad: torch.Tensor):
+        """Values of rows ``p`` and, where ``with_grad``, their gradients in the same pass
+        (NaN elsewhere)."""
+        value, grad = p.new_empty(len(p)), torch.full_like(p, torch.nan)
+        if (~with_grad).any():
+            with torch.no_grad():
+                value[~with_grad] = nll(p[~with_grad], data[~with_grad])
+        if with_grad.any():
+            ll, score, _ = _by_rows(scores, p[with_grad], data[with_grad], GRAD_TRIALS)
+            value[with_grad], grad[with_grad] = -ll.sum(1), -score.sum(1)
+        return value, grad
 
-    def gradient(p: torch.Tensor, data: TensorDictBase):
-        ll, score, _ = scores(p, data)
-        return -ll.sum(1), -score.sum(1)
-
-    def fisher(p: torch.Tensor, data: TensorDictBase):
-        return _fisher_scoring(loss, k, p, data, draws)
-
-    passes = {
-        _VALUE: (value_only, GRAD_TRIALS),
-        _GRADIENT: (gradient, GRAD_TRIALS),
-        _FISHER: (fisher, GRAD_TRIALS),
-        _HESSIAN: (hessian_of_nll, HESSIAN_TRIALS),
-    }
-
-    def derivatives(p: torch.Tensor, data: TensorDictBase, order: torch.Tensor):
-        """Value ``[n]``, gradient ``[n, p]`` and curvature ``[n, p, p]`` of rows ``p``, each
-        row to its ``order`` (value, gradient, sampled Fisher or exact Hessian; NaN beyond)."""
+    def derivatives(p: torch.Tensor, data: TensorDictBase, near: torch.Tensor):
+        """Value, gradient and curvature of rows ``p``: Fisher scoring far from θ̂; near it the
+        exact Hessian, or with ``"bfgs"`` none (NaN: the iteration updates the last one)."""
         n, m = p.shape
-        out = (p.new_empty(n), p.new_full((n, m), torch.nan), p.new_full((n, m, m), torch.nan))
-        for kind, (fn, budget) in passes.items():
-            rows_ = order == kind
+        out = (p.new_empty(n), p.new_empty(n, m), p.new_full((n, m, m), torch.nan))
+        for rows_, kind in ((near, "near"), (~near, "fisher")):
             if rows_.any():
-                for o, v in zip(out, _by_rows(fn, p[rows_], data[rows_], budget), strict=False):
+                q, d = p[rows_], data[rows_]
+                if kind == "fisher":
+                    parts = _by_rows(
+                        lambda q_, d_: _fisher_scoring(loss, k, q_, d_, draws), q, d, GRAD_TRIALS
+                    )
+                elif curvature == "bfgs":
+                    parts = evaluate(q, d, torch.ones_like(rows_[rows_]))
+                else:
+                    parts = _by_rows(hessian_of_nll, q, d, HESSIAN_TRIALS)
+                for o, v in zip(out, parts, strict=False):
                     o[rows_] = v
         return out
 
-    # rows near θ̂ step with the exact Hessian (Newton converges quadratically there), or with
-    # BFGS updates of the last curvature; Fisher scoring brings the others near
+    # rows near θ̂ step with the exact Hessian (Newton converges quadratically there);
+    # Fisher scoring brings the others near
     near = torch.full((params.shape[0],), curvature == "hessian", device=device)
-    value, grad, hessian = derivatives(params, rows, torch.where(near, _HESSIAN, _FISHER))
+    value, grad, hessian = derivatives(params, rows, near)
     damping = torch.full((params.shape[0],), 1e-3, dtype=torch.float64, device=device)
     converged = torch.zeros(params.shape[0], dtype=torch.bool, device=device)
     stalled = torch.zeros_like(converged)  # no step improves: stop, but do not claim θ̂
@@ -247,37 +244,18 @@ def fit_theta(
         # while the model promises much, is not θ̂
         flat_top = (idle[active] >= IDLE) & (decrement < SWITCH)
         converged[active] = near[active] & ((decrement < tol) | flat_top)
-        # a start below the best of its agent's rows within SWITCH of their maximum is
-        # abandoned where it cannot overtake (it lies further below than its own model promises
-        # to gain) or can only end where that row ends (it lies within SWITCH of it under that
-        # row's curvature): the batch would wait for it
-        settled = converged.clone()
-        settled[active] |= near[active] & (decrement < SWITCH)
-        behind, best = (x[active] for x in _behind_best(value, settled, n_starts))
-        apart = params[active] - params[best]
-        basin = 0.5 * (apart.unsqueeze(-2) @ _absolute(hessian[best]) @ apart.unsqueeze(-1))
-        stalled[active] |= (
-            ~converged[active]
-            & (best != active)
-            & ((behind > decrement.clamp_min(SWITCH)) | ((behind > 0) & (basin.view(-1) < SWITCH)))
-        )
-        # the rows that stop here take no step
-        moving = ~converged[active] & ~stalled[active]
-        if not moving.any():
-            break
-        active, h, g, d, decrement = (x[moving] for x in (active, h, g, d, decrement))
+        # a start below its agent's converged maximum by more than its own model promises to
+        # gain is abandoned: it cannot overtake, and the batch would wait for it
+        behind = _behind_best(value, converged, n_starts)[active]
+        stalled[active] |= ~converged[active] & (behind > decrement.clamp_min(SWITCH))
         step, d = _damped_step(_absolute(h), g, d)
         # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
         step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
-        # one pass where a step lands gives what the row needs if it is taken: Fisher rows
-        # their next curvature, BFGS rows their gradient; exact-Hessian rows take theirs after
+        # BFGS rows need the gradient wherever a step lands: it comes with the trial's value
         quasi = near[active] & (curvature == "bfgs")
-        landing = torch.where(near[active], torch.where(quasi, _GRADIENT, _VALUE), _FISHER)
-        trial_value, trial_grad, trial_curvature = derivatives(
-            params[active] + step, rows[active], landing
-        )
+        trial_value, trial_grad = evaluate(params[active] + step, rows[active], quasi)
         gain = value[active] - trial_value
-        accept = gain > 1e-12
+        accept = (gain > 1e-12) & ~converged[active]
         # Fisher scoring has done its part once it promises or makes little progress
         switch = ~near[active] & ((decrement < SWITCH) | (accept & (gain < SWITCH)))
         # the gain ratio: how much of the decrease the quadratic model promised was made
@@ -291,23 +269,26 @@ def fit_theta(
         idle[active] = torch.where(accept & (gain >= tol), 0, idle[active] + 1)
         params[active[accept]] += step[accept]
         near[active[switch]] = True
-        landed = accept & (landing != _VALUE)
         if curvature == "bfgs":
-            # a BFGS row updates its last curvature with the gradient where it landed
-            taken = accept & quasi
-            before = active[taken]
-            trial_curvature[taken] = _bfgs_update(
-                hessian[before], step[taken], trial_grad[taken] - grad[before]
-            )
-        moved = active[landed]
-        value[moved], grad[moved], hessian[moved] = (
-            x[landed] for x in (trial_value, trial_grad, trial_curvature)
-        )
-        # exact-Hessian rows need it where they stand: after a step, or on switching to it
-        refresh = active[(accept & ~landed) | (switch & (curvature != "bfgs"))]
+            moved = active[accept]
+            before_grad, before_hessian = grad[moved], hessian[moved]
+            # a BFGS row's gradient came with its trial value; the others need a pass
+            landed = accept & quasi
+            value[active[landed]], grad[active[landed]] = trial_value[landed], trial_grad[landed]
+            refresh = active[accept & ~quasi]
+        else:
+            refresh = active[accept | switch]
         if len(refresh):
             value[refresh], grad[refresh], hessian[refresh] = derivatives(
-                params[refresh], rows[refresh], torch.full_like(refresh, _HESSIAN)
+                params[refresh], rows[refresh], near[refresh]
+            )
+        if curvature == "bfgs":
+            # rows near θ̂ update their last curvature (a Fisher matrix for rows switching now)
+            update = near[moved]
+            hessian[moved[update]] = _bfgs_update(
+                before_hessian[update],
+                step[accept][update],
+                grad[moved[update]] - before_grad[update],
             )
         if progress is not None:
             progress(iterations, max_iter)
@@ -321,8 +302,9 @@ def fit_theta(
     information = hessian[pick]
     missing = ~near[pick] | (curvature == "bfgs")
     if missing.any():
-        order = torch.full((int(missing.sum()),), _HESSIAN, device=device)
-        _, _, information[missing] = derivatives(params[pick][missing], trials[missing], order)
+        _, _, information[missing] = _by_rows(
+            hessian_of_nll, params[pick][missing], trials[missing], HESSIAN_TRIALS
+        )
     # θ̂ is a maximum only where the observed information there is positive definite (BFGS's
     # curvature always is)
     maximum = torch.isfinite(
@@ -550,22 +532,11 @@ def _by_rows(fn: Callable, params: torch.Tensor, trials: TensorDictBase, budget:
     return tuple(None if x[0] is None else torch.cat(x) for x in zip(*parts, strict=True))
 
 
-def _behind_best(
-    value: torch.Tensor, settled: torch.Tensor, n_starts: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """How far each row's negative log-likelihood lies above the best ``settled`` row of its
-    agent, and that row (rows agent-major, ``n_starts`` per agent; ``-inf`` and the row itself
-    where the agent has none)."""
-    reached, where = torch.where(settled, value, torch.inf).view(-1, n_starts).min(1)
-
-    def per_row(x: torch.Tensor) -> torch.Tensor:
-        return x.repeat_interleave(n_starts)
-
-    rows = torch.arange(len(value), device=value.device)
-    best = torch.where(
-        per_row(torch.isfinite(reached)), per_row(where) + rows - rows % n_starts, rows
-    )
-    return value - per_row(reached), best
+def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) -> torch.Tensor:
+    """How far each row's negative log-likelihood lies above the best converged row of its
+    agent (rows agent-major, ``n_starts`` per agent; ``-inf`` where the agent has none)."""
+    reached = torch.where(converged, value, torch.inf).view(-1, n_starts).amin(1)
+    return value - reached.repeat_interleave(n_starts)
 
 
 def _pin_bounds(
