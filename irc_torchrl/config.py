@@ -22,6 +22,7 @@ from irc_torchrl.algorithms.ensemble import (
 )
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
 
 if TYPE_CHECKING:  # recover2d imports this module
     from irc_torchrl.algorithms.recover2d import Recovery2DConfig
@@ -146,6 +147,9 @@ class RecordingFitConfig:
     #: number of trials) and refitted the same way, to calibrate the intervals
     #: (:mod:`~irc_torchrl.algorithms.calibration`; 0: none). Each costs about the fit again
     calibrate: int = 0
+    #: the precision the frozen actor runs in inside the float64 likelihood (see
+    #: ``actor_dtype`` of ``irc recover``)
+    actor_dtype: str = "float64"
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)
@@ -176,6 +180,7 @@ class RecordingFitConfig:
         _one_of("curvature", self.curvature, CURVATURES)
         _one_of("covariance", self.covariance, COVARIANCES)
         _one_of("intervals", self.intervals, INTERVALS)
+        _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         return self
 
 

@@ -43,7 +43,7 @@ from irc_torchrl.data.files import atomic_path, write_json
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
-from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.fisher import Intervals
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
@@ -289,7 +289,10 @@ def fit_recordings(
         truths = [_simulated_truth(p) for p in paths]
         spec = model.action_spec
         action_model = CensoredGaussianActionModel(
-            FeaturePolicy(actor), spec.space.low, spec.space.high, config.motor_noise
+            FeaturePolicy(actor, ACTOR_DTYPES[config.actor_dtype]),
+            spec.space.low,
+            spec.space.high,
+            config.motor_noise,
         )
         fits, beliefs, timings, checks = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress

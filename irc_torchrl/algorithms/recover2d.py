@@ -37,10 +37,10 @@ from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
-from irc_torchrl.config import FitConfig, config_to_dict
+from irc_torchrl.config import FitConfig, _one_of, config_to_dict
 from irc_torchrl.data.files import atomic_dir, write_json, write_text
 from irc_torchrl.envs.firefly2d import Firefly2DModel
-from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.objectives.marginal import FINAL_STEPS, check_mixture
@@ -88,6 +88,10 @@ class Recovery2DConfig:
     #: (:mod:`~irc_torchrl.algorithms.calibration`; 0: none). Each costs about one recovery's
     #: fitting time
     calibrate: int = 0
+    #: the precision the frozen actor runs in inside the float64 likelihood: "float32" makes
+    #: the recovery about 1.4× faster, with the same intervals at a given θ (different fits:
+    #: each estimator's path through the rugged likelihood changes)
+    actor_dtype: str = "float64"
     #: intervals from the sandwich: both estimators approximate the likelihood, and the
     #: trials' scores vary more than the approximation's curvature says
     fit: FitConfig = field(
@@ -115,6 +119,7 @@ class Recovery2DConfig:
         if not self.motor_noise > 0:
             raise ValueError(f"config: motor_noise must be > 0, got {self.motor_noise}")
         self.fit.validate()
+        _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         unknown = [m for m in self.method_list if m not in METHODS]
         if unknown or not self.method_list:
             raise ValueError(
@@ -195,7 +200,10 @@ def recover_firefly2d(
     n_agents = theta_true.shape[0]
     low, high = model.action_spec.space.low, model.action_spec.space.high
     action_model = CensoredGaussianActionModel(
-        FeaturePolicy(actor), low, high, motor_noise=config.motor_noise
+        FeaturePolicy(actor, ACTOR_DTYPES[config.actor_dtype]),
+        low,
+        high,
+        motor_noise=config.motor_noise,
     )
     summary: dict = {
         "task": config.task,

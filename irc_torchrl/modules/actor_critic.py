@@ -18,7 +18,7 @@ from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
 from irc_torchrl.envs.belief import BeliefFeatures
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["ACTIVATIONS", "FeaturePolicy", "make_actor", "make_critic"]
+__all__ = ["ACTIVATIONS", "ACTOR_DTYPES", "FeaturePolicy", "make_actor", "make_critic"]
 
 #: activations a config may name
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -73,25 +73,35 @@ def make_critic(
     )
 
 
+#: the precisions :class:`FeaturePolicy` can run the network in, by their config names
+ACTOR_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
 class FeaturePolicy(nn.Module):
     """The tensor path of a :func:`make_actor` actor: features ``[*B, df]`` → action ``[*B, da]``.
 
     The inverse objective differentiates the policy in its input (the belief), so it needs the
-    network without the TensorDict plumbing; the weights are the actor's own (shared), cast to
-    the input's dtype on the fly.
+    network without the TensorDict plumbing; the weights are the actor's own (shared). The
+    network runs in ``dtype`` (``None``: the input's, float64 in a fit). float32 takes about a
+    third off a float64 fit, where the actor's matrix products are half of every pass, for an
+    error of ~1e-4 nats in a 100-trial log-likelihood; the squashing to the action bounds runs
+    in the input's dtype, which keeps a saturated action's distance to its bound exact.
     """
 
-    def __init__(self, actor: TensorDictSequential) -> None:
+    def __init__(
+        self, actor: TensorDictSequential, dtype: torch.dtype | None = None
+    ) -> None:
         super().__init__()
         _, net, squash = actor.module
         self.mlp = net.module
+        self.dtype = dtype
         bounds = squash.spec[squash.out_keys[0]].space
         self.register_buffer("low", torch.as_tensor(bounds.low, dtype=torch.float32))
         self.register_buffer("high", torch.as_tensor(bounds.high, dtype=torch.float32))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        dtype = features.dtype  # the inverse runs in float64; the actor's weights stay as they are
-        weights = {k: v.to(dtype) for k, v in self.mlp.named_parameters()}
+        dtype, inner = features.dtype, self.dtype or features.dtype
+        weights = {k: v.to(inner) for k, v in self.mlp.named_parameters()}
+        pre = torch.func.functional_call(self.mlp, weights, (features.to(inner),)).to(dtype)
         half = (self.high - self.low).to(dtype) / 2
-        squashed = torch.tanh(torch.func.functional_call(self.mlp, weights, (features,)))
-        return self.low.to(dtype) + half + half * squashed
+        return self.low.to(dtype) + half + half * torch.tanh(pre)
