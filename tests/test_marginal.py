@@ -305,6 +305,26 @@ def test_the_mixture_rescores_only_each_trials_last_steps():
     assert torch.isfinite(drawn).all() and (drawn[~mask] == 0).all() and (drawn[mask] != 0).all()
 
 
+@pytest.mark.parametrize("components", [1, 32])
+def test_the_likelihood_alone_equals_the_likelihood_beside_the_beliefs(components):
+    """``beliefs=False`` (what a fit runs) skips gathering the beliefs, nothing else: the same
+    per-step scores and drawn scores, bit for bit, with and without a mixture."""
+    action_model, theta, nuisance, state, action, target = _stand_in_trials(0.8, sharpness=6.0)
+    theta_b = theta.expand(6, -1)
+    mask = torch.arange(T) < torch.tensor([10, 7, 3, 1, 9, 5]).unsqueeze(-1)
+
+    def run(beliefs):
+        return marginal_filter(
+            MODEL, action_model, theta_b, nuisance, state, action, target, theta_b, mask,
+            generator=torch.Generator().manual_seed(0), components=components, beliefs=beliefs,
+        )  # fmt: skip
+
+    full, alone = run(True), run(False)
+    assert alone[1:4] == (None, None, None)
+    assert all(x.shape == (6, T) + x.shape[2:] for x in full)
+    assert torch.equal(alone[0], full[0]) and torch.equal(alone[4], full[4])
+
+
 def test_a_stop_is_scored_by_its_forward_control_only():
     step = torch.tensor([[5], [1], [5]])
     action = torch.tensor([[0.05, 0.9], [0.05, 0.9], [0.5, 0.9]])

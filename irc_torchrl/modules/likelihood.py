@@ -154,10 +154,11 @@ class CensoredGaussianActionModel(nn.Module):
 
     def _mix_lapse(
         self, logp: torch.Tensor, clipped: torch.Tensor, width: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``log p`` of the lapse mixture, and the model's responsibility for the action."""
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``log p`` of the lapse mixture, and the model's responsibility for the action
+        (``None`` without a lapse: the model is responsible for every action)."""
         if not self.lapse:
-            return logp, torch.ones_like(logp)
+            return logp, None
         lapse = torch.where(clipped, math.log(0.25), -torch.log(2 * width).expand_as(logp))
         model = logp + math.log1p(-self.lapse)
         mixed = torch.logaddexp(model, lapse + math.log(self.lapse))
@@ -242,16 +243,19 @@ class CensoredGaussianActionModel(nn.Module):
             moved = keep * torch.where(clipped, sign * std * ratio, a - m) / var
             truncated = (ratio * (ratio - alpha)).clamp(0, 1)  # the variance a tail removes
             shrink = keep * torch.where(clipped, truncated, torch.ones_like(m)) / var
-            # a mixture of the conditioned and the unconditioned (lapse) posterior
-            shrink = weight * shrink - weight * (1 - weight) * moved**2
-            moved = (weight * moved).unsqueeze(-1)
+            if weight is not None:
+                # a mixture of the conditioned and the unconditioned (lapse) posterior
+                shrink = weight * shrink - weight * (1 - weight) * moved**2
+                moved = weight * moved
+            moved = moved.unsqueeze(-1)
             shift = shift + cov_z * moved
-            shift_action = shift_action + cov_y * moved
             shrink = shrink[..., None, None]
             cov = cov - cov_z.unsqueeze(-1) * cov_z.unsqueeze(-2) * shrink
-            cross = cross - cov_z.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink
-            cov_action = cov_action - cov_y.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink
             cov = 0.5 * (cov + cov.transpose(-1, -2))
+            if i + 1 < mean.shape[-1]:  # what the next dimensions are conditioned on
+                shift_action = shift_action + cov_y * moved
+                cross = cross - cov_z.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink
+                cov_action = cov_action - cov_y.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink
             means.append(m)
             variances.append(var)
         return logp, shift, cov, (torch.stack(means, -1), torch.stack(variances, -1))

@@ -165,7 +165,7 @@ class InverseRationalLoss(LossModule):
             logp, *_, draws = marginal_filter(
                 self.model, self.action_model, theta_b, nuisance_b, state, action.to(state.dtype),
                 target, task_theta, mask, generator, self.moments, self.components,
-                self.final_steps,
+                self.final_steps, beliefs=False,
             )  # fmt: skip
             total = torch.where(mask, logp, torch.zeros_like(logp)).sum(2)
             drawn = torch.where(mask, draws, torch.zeros_like(draws)).sum(2)

@@ -75,7 +75,8 @@ def marginal_filter(
     moments: str = "cubature",
     components: int = 1,
     final_steps: int = FINAL_STEPS,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    beliefs: bool = True,
+) -> tuple[torch.Tensor, ...]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
     Args:
@@ -96,13 +97,16 @@ def marginal_filter(
             trial's end: there the agent stops or creeps on, its belief given the actions is
             far from Gaussian, and one Gaussian mis-scores the stop by a θ-dependent amount.
         final_steps: how many of each trial's last steps the mixture scores.
+        beliefs: also return the beliefs at every step; a fit needs the likelihood alone,
+            and without them a pass neither gathers nor reorders ``[*B, T, ds, ds]`` tensors.
 
     Returns:
         per-step ``log p(a_t | a_{<t}, s)`` ``[*B, T]``; the recovered belief mean
         ``E[z_t | a_{≤t}]`` ``[*B, T, ds]``; the agent's own belief covariance ``P_t``
         ``[*B, T, ds, ds]`` (under a mixture, its posterior average); the uncertainty of the
-        recovered mean ``[*B, T, ds, ds]``; and per step the log-probability of the drawn
-        action ``[*B, T]`` (zeros without ``generator``).
+        recovered mean ``[*B, T, ds, ds]`` (these three ``None`` without ``beliefs``); and
+        per step the log-probability of the drawn action ``[*B, T]`` (zeros without
+        ``generator``).
     """
     if moments not in MOMENT_RULES:
         raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
@@ -124,7 +128,7 @@ def marginal_filter(
     state, action = state.reshape(flat, steps, ds)[order], action.reshape(flat, steps, -1)[order]
     recorded = _Recorded(
         model, action_model, _cubature if moments == "cubature" else _linearised,
-        theta, nuisance, state, action, target, task_theta, generator,
+        theta, nuisance, state, action, target, task_theta, generator, beliefs,
     )  # fmt: skip
     mean, cov = model.initial_belief(state[:, 0], target, theta)
     # the agent starts from a belief the experimenter knows
@@ -142,11 +146,13 @@ def marginal_filter(
         later = torch.arange(late[0].shape[1], device=state.device)
         row, offset = (later < rest.unsqueeze(-1)).nonzero(as_tuple=True)
         outputs = [
-            head.index_put((row, split[row] + offset), tail[row, offset])
+            None if head is None else head.index_put((row, split[row] + offset), tail[row, offset])
             for head, tail in zip(outputs, late, strict=True)
         ]
     unsort = order.argsort()
-    return tuple(x[unsort].reshape(*batch, steps, *x.shape[2:]) for x in outputs)
+    return tuple(
+        None if x is None else x[unsort].reshape(*batch, steps, *x.shape[2:]) for x in outputs
+    )
 
 
 def check_mixture(model: TaskModel, components: int, final_steps: int) -> None:
@@ -173,6 +179,7 @@ class _Recorded(NamedTuple):
     target: torch.Tensor
     task_theta: torch.Tensor
     generator: torch.Generator | None
+    beliefs: bool
 
 
 def _outer_pass(
@@ -197,9 +204,8 @@ def _outer_pass(
         (rows sorted, ``[n, T, ...]``), and with ``carry`` the carried mixture
         (``[n, M, ...]``).
     """
-    model, action_model, predict, theta, nuisance, state, action, target, task_theta, generator = (
-        recorded
-    )
+    model, action_model, predict, theta, nuisance, state, action, target, task_theta = recorded[:9]
+    generator, beliefs = recorded.generator, recorded.beliefs
     n_rows, m = mean.shape[:2]
     steps, ds = state.shape[1], state.shape[2]
     running = [int(n) for n in (count.unsqueeze(-1) > torch.arange(int(count.max()))).sum(0)]
@@ -229,9 +235,10 @@ def _outer_pass(
         z = z + shift
         if m == 1:
             logps.append(logp)
-            means.append(z)
-            covs.append(p)
-            outers.append(o)
+            if beliefs:
+                means.append(z)
+                covs.append(p)
+                outers.append(o)
         else:
             # the predictive is the mixture's; actions are drawn from its moments
             weight = log_weight.exp().unsqueeze(-1)
@@ -241,13 +248,14 @@ def _outer_pass(
             joint = log_weight + logp.view(n, m)  # the weights are normalised: Σ exp = 1
             logps.append(joint.logsumexp(-1))
             log_weight = joint.log_softmax(-1)
-            weight = log_weight.exp()[..., None, None]
-            z_m, o_m = z.view(n, m, ds, 1), o.view(n, m, ds, ds)
-            recovered = (weight * z_m).sum(1)
-            spread = z_m - recovered.unsqueeze(1)
-            means.append(recovered.squeeze(-1))
-            covs.append((weight * cov).sum(1))
-            outers.append((weight * (o_m + spread @ spread.mT)).sum(1))
+            if beliefs:
+                weight = log_weight.exp()[..., None, None]
+                z_m, o_m = z.view(n, m, ds, 1), o.view(n, m, ds, ds)
+                recovered = (weight * z_m).sum(1)
+                spread = z_m - recovered.unsqueeze(1)
+                means.append(recovered.squeeze(-1))
+                covs.append((weight * cov).sum(1))
+                outers.append((weight * (o_m + spread @ spread.mT)).sum(1))
         if generator is not None:
             draws.append(gaussian_log_prob_of_draw(*drawn, generator, scored))
         below = running[k + 1] if k + 1 < len(running) else 0
@@ -262,6 +270,8 @@ def _outer_pass(
         finished.append(tuple(x[below:] for x in (mean, cov, outer)))
 
     def stack(xs):
+        if not xs:
+            return None
         padded = [torch.cat([x, x.new_zeros(n_rows - len(x), *x.shape[1:])]) for x in xs]
         padded += [padded[0].new_zeros(padded[0].shape)] * (steps - len(padded))
         return torch.stack(padded, 1)
