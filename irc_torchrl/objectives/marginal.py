@@ -76,7 +76,7 @@ def marginal_filter(
     components: int = 1,
     final_steps: int = FINAL_STEPS,
     beliefs: bool = True,
-) -> tuple[torch.Tensor, ...]:
+) -> tuple[torch.Tensor | None, ...]:
     """Run the outer filter along recorded trials ``[*B, T]``.
 
     Args:
