@@ -138,7 +138,10 @@ def fit_theta(
     them and the best end point per agent is kept. ``starts`` (natural θ ``[n_agents, d]``,
     e.g. another estimator's θ̂) joins each agent's candidates (with ``n_screen=0`` it is the
     only start). Agents are
-    independent rows: an agent's result does not depend on the others in the call. Returns θ̂,
+    independent rows: an agent's likelihood, starts and steps read its own data alone. The
+    others in the call change only the rounding of batched products and, with Fisher scoring,
+    which samples its draws get; both move a step by far less than its size, yet where the
+    likelihood has cusps (the 2D task's stops) a fit may then end at another point. Returns θ̂,
     95% intervals from the observed Fisher information, identifiability flags, the
     log-likelihood and whether each fit converged. ``covariance="sandwich"`` widens the
     intervals by how much more the trials' scores vary than the curvature says (they agree
