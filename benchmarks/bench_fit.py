@@ -8,7 +8,7 @@ so there the paths differ and θ̂ agree to the fit's tolerance, not bit for bit
 runs with ``irc recover``'s settings (``--max-iter 80`` for its iteration limit).
 
 Run: ``python benchmarks/bench_fit.py [--task firefly1d|firefly2d] [--method map|marginal]
-[--agents 20] [--trials 100] [--max-iter 40]``.
+[--agents 20] [--trials 100] [--max-iter 40] [--actor-dtype float32|float64]``.
 """
 
 from __future__ import annotations
@@ -24,13 +24,14 @@ from irc_torchrl.algorithms.fit import fit_theta
 from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 from irc_torchrl.envs import Firefly1DModel
-from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
 from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 
-def _task(name: str):
-    """``(model, policy, action_model, fit settings)`` of a task."""
+def _task(name: str, actor_dtype: str):
+    """``(model, policy, action_model, fit settings)`` of a task (the 2D actor in ``actor_dtype``
+    inside the likelihood)."""
     if name == "firefly1d":
         model = Firefly1DModel()
         q = train_factorised_q(model, seed=0)
@@ -38,7 +39,7 @@ def _task(name: str):
     actor, model, _ = load_ensemble_policy("firefly2d")
     spec = model.action_spec
     action_model = CensoredGaussianActionModel(
-        FeaturePolicy(actor), spec.space.low, spec.space.high
+        FeaturePolicy(actor, ACTOR_DTYPES[actor_dtype]), spec.space.low, spec.space.high
     )
     settings = {"n_screen": 16, "n_starts": 2, "curvature": "bfgs", "covariance": "sandwich"}
     return model, motor_noise_policy(actor, spec, 0.1), action_model, settings
@@ -52,9 +53,10 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--max-iter", type=int, default=40)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--actor-dtype", choices=sorted(ACTOR_DTYPES), default="float32")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    model, policy, action_model, settings = _task(args.task)
+    model, policy, action_model, settings = _task(args.task, args.actor_dtype)
     space = model.theta_space
     theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(0))
     trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
@@ -77,7 +79,8 @@ def main() -> None:
     gap = ((hats - batched.theta_hat).abs() / (space.high() - space.low()).double()).amax()
     print(
         f"{args.task}, {args.method}: {args.agents} agents × {args.trials} trials, "
-        f"{args.threads} thread(s), at most {args.max_iter} iterations"
+        f"{args.threads} thread(s), at most {args.max_iter} iterations, "
+        f"{args.actor_dtype} actor"
     )
     print(f"batched: one call      {batched_s:8.1f} s")
     print(f"sequential: {args.agents} calls  {sequential_s:8.1f} s")

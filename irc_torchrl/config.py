@@ -149,7 +149,7 @@ class RecordingFitConfig:
     calibrate: int = 0
     #: the precision the frozen actor runs in inside the float64 likelihood (see
     #: ``actor_dtype`` of ``irc recover``)
-    actor_dtype: str = "float64"
+    actor_dtype: str = "float32"
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)

@@ -17,11 +17,13 @@ from irc_torchrl.algorithms.recover2d import (
     simulate_recovery_agents,
 )
 from irc_torchrl.config import RecordingFitConfig
-from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-SMALL = dict(n_prior_agents=2, n_mistaken_agents=1, n_trials=30, seed=3, particles=300)
+SMALL = dict(
+    n_prior_agents=2, n_mistaken_agents=1, n_trials=30, seed=3, particles=300, calibrate=0
+)
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +50,13 @@ def at_truth(recovery):
 
 def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, at_truth):
     # θ̂ is a maximum of the likelihood, so it must score the data at least as well as θ*
-    _, model, action_model = shipped
+    # (the likelihood the recovery fitted: its actor's precision)
+    actor, model, shipped_model = shipped
     held, truth, motor = at_truth
+    dtype = ACTOR_DTYPES[Recovery2DConfig(**SMALL).actor_dtype]
+    action_model = CensoredGaussianActionModel(
+        FeaturePolicy(actor, dtype), shipped_model.low, shipped_model.high
+    )
     for method, result in recovery[2].items():
         loss = InverseRationalLoss(model, action_model, n_agents=truth.shape[0], method=method)
         with torch.no_grad():
@@ -155,15 +162,23 @@ def test_an_unknown_actor_dtype_is_a_clear_error():
             config.validate()
 
 
-@pytest.mark.parametrize("method, components", [("map", 1), ("marginal", 1), ("marginal", 16)])
+@pytest.mark.parametrize(
+    "method, components, dtype",
+    [("map", 1, "float64"), ("marginal", 1, "float64"), ("marginal", 16, "float64"),
+     ("map", 1, "float32"), ("marginal", 1, "float32")],
+)  # fmt: skip
 def test_likelihood_and_gradient_are_finite_at_the_edges_of_theta_and_motor_noise(
-    shipped, method, components
+    shipped, method, components, dtype
 ):
     # θ at the corners of its space (noises near 0 or at their maximum, gains at their bounds)
     # and a nearly noise-free or very noisy motor: a fit's line search may step anywhere there.
     # A near-noise-free motor once drove the outer covariance indefinite (Cholesky error) and
-    # a clipped action thousands of sds out made the tail's variance factor exceed 1 (NaN)
-    actor, model, action_model = shipped
+    # a clipped action thousands of sds out made the tail's variance factor exceed 1 (NaN).
+    # Both precisions of the actor (float32 is irc recover's and irc fit's default)
+    actor, model, shipped_model = shipped
+    action_model = CensoredGaussianActionModel(
+        FeaturePolicy(actor, ACTOR_DTYPES[dtype]), shipped_model.low, shipped_model.high
+    )
     space = model.theta_space
     trials, _, _ = simulate_recovery_agents(
         model, actor, Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=0, n_trials=12)
