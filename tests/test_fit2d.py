@@ -32,11 +32,18 @@ def recovery():
     return recover_firefly2d(Recovery2DConfig(**SMALL))
 
 
+def actor_action_model(actor, model, dtype: str | None = None) -> CensoredGaussianActionModel:
+    """The censored motor-noise model around the shipped actor, run in ``dtype`` (a name of
+    ``ACTOR_DTYPES``; ``None``: the likelihood's float64)."""
+    low, high = model.action_spec.space.low, model.action_spec.space.high
+    policy = FeaturePolicy(actor, None if dtype is None else ACTOR_DTYPES[dtype])
+    return CensoredGaussianActionModel(policy, low, high)
+
+
 @pytest.fixture(scope="module")
 def shipped():
     actor, model, _ = load_ensemble_policy("firefly2d")
-    low, high = model.action_spec.space.low, model.action_spec.space.high
-    return actor, model, CensoredGaussianActionModel(FeaturePolicy(actor), low, high)
+    return actor, model, actor_action_model(actor, model)
 
 
 @pytest.fixture(scope="module")
@@ -51,12 +58,9 @@ def at_truth(recovery):
 def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, at_truth):
     # θ̂ is a maximum of the likelihood, so it must score the data at least as well as θ*
     # (the likelihood the recovery fitted: its actor's precision)
-    actor, model, shipped_model = shipped
+    actor, model, _ = shipped
     held, truth, motor = at_truth
-    dtype = ACTOR_DTYPES[Recovery2DConfig(**SMALL).actor_dtype]
-    action_model = CensoredGaussianActionModel(
-        FeaturePolicy(actor, dtype), shipped_model.low, shipped_model.high
-    )
+    action_model = actor_action_model(actor, model, Recovery2DConfig(**SMALL).actor_dtype)
     for method, result in recovery[2].items():
         loss = InverseRationalLoss(model, action_model, n_agents=truth.shape[0], method=method)
         with torch.no_grad():
@@ -138,18 +142,17 @@ def test_a_float32_actor_moves_the_likelihood_far_less_than_the_fits_tolerance(s
     # and 1.4e-5); the action comes back in the input's dtype, squashed there
     actor, model, _ = shipped
     held, truth, motor = at_truth
-    low, high = model.action_spec.space.low, model.action_spec.space.high
     space = model.theta_space
     k = int(space.free_mask.sum())
     x = torch.cat([space.to_unconstrained(truth)[:, space.free_mask], motor], -1)
     out = {}
-    for dtype in (torch.float64, torch.float32):
-        action_model = CensoredGaussianActionModel(FeaturePolicy(actor, dtype), low, high)
+    for dtype in ("float64", "float32"):
+        action_model = actor_action_model(actor, model, dtype)
         loss = InverseRationalLoss(model, action_model, n_agents=len(x), method="marginal")
         p = x.clone().requires_grad_(True)
         value = loss.log_likelihood(loss.theta(p[:, :k]), p[:, k:], held)
         out[dtype] = value.detach(), torch.autograd.grad(value.sum(), p)[0]
-    (v64, g64), (v32, g32) = out[torch.float64], out[torch.float32]
+    (v64, g64), (v32, g32) = out["float64"], out["float32"]
     assert (v64 - v32).abs().max() < 1e-3, (v64, v32)
     assert ((g64 - g32).norm(dim=-1) / g64.norm(dim=-1)).max() < 1e-3, (g64, g32)
     features = torch.zeros(3, FeaturePolicy(actor).mlp[0].in_features, dtype=torch.float64)
@@ -175,10 +178,8 @@ def test_likelihood_and_gradient_are_finite_at_the_edges_of_theta_and_motor_nois
     # A near-noise-free motor once drove the outer covariance indefinite (Cholesky error) and
     # a clipped action thousands of sds out made the tail's variance factor exceed 1 (NaN).
     # Both precisions of the actor (float32 is irc recover's and irc fit's default)
-    actor, model, shipped_model = shipped
-    action_model = CensoredGaussianActionModel(
-        FeaturePolicy(actor, ACTOR_DTYPES[dtype]), shipped_model.low, shipped_model.high
-    )
+    actor, model, _ = shipped
+    action_model = actor_action_model(actor, model, dtype)
     space = model.theta_space
     trials, _, _ = simulate_recovery_agents(
         model, actor, Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=0, n_trials=12)
