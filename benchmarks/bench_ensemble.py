@@ -137,10 +137,11 @@ def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> lis
     return rows
 
 
-def ensemble_at(history: list[dict], cpu_s: float) -> float:
-    """The ensemble's success at its last evaluation within ``cpu_s`` CPU seconds (0 before)."""
-    done = [row["success_rate"] for row in history if row["train_cpu_s"] <= cpu_s + 1e-9]
-    return done[-1] if done else 0.0
+def ensemble_at(history: list[dict], cpu_s: float) -> tuple[float, float | None]:
+    """The ensemble's success and mean return at its last evaluation within ``cpu_s`` CPU
+    seconds (success 0 and no return before its first)."""
+    done = [row for row in history if row["train_cpu_s"] <= cpu_s + 1e-9]
+    return (done[-1]["success_rate"], done[-1]["mean_return"]) if done else (0.0, None)
 
 
 def main() -> None:
@@ -194,12 +195,17 @@ def main() -> None:
     budgets = [budget * f for f in (0.125, 0.25, 0.5, 1.0)]
     td3 = td3_run(budgets, 0, model, grid)
     if td3:
-        print(f"{'CPU s':>7} {'TD3 steps':>9} {'TD3 success':>11} {'ensemble success':>16}")
+        # returns too: where both still catch nothing, the return says which is nearer
+        print(
+            f"{'CPU s':>7} {'TD3 steps':>9} {'success: TD3':>12} {'ensemble':>8} "
+            f"{'return: TD3':>11} {'ensemble':>8}"
+        )
         for row in td3:
-            row["ensemble_success"] = ensemble_at(history, row["cpu_s"])
+            row["ensemble_success"], row["ensemble_return"] = ensemble_at(history, row["cpu_s"])
+            ours = "–" if row["ensemble_return"] is None else f"{row['ensemble_return']:.2f}"
             print(
-                f"{row['cpu_s']:>7.0f} {row['steps']:>9} {row['success_rate']:>11.1%} "
-                f"{row['ensemble_success']:>16.1%}"
+                f"{row['cpu_s']:>7.0f} {row['steps']:>9} {row['success_rate']:>12.1%} "
+                f"{row['ensemble_success']:>8.1%} {row['mean_return']:>11.2f} {ours:>8}"
             )
     else:
         print("TD3: stable_baselines3 is not installed; skipped")
