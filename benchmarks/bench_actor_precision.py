@@ -18,8 +18,7 @@ import torch
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import _trial_scores
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
-from irc_torchrl.modules.actor_critic import FeaturePolicy
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 ROWS = (1, 2, 16)
@@ -43,14 +42,9 @@ def main() -> None:
     k = int(free.sum())
     losses = {
         name: InverseRationalLoss(
-            model,
-            CensoredGaussianActionModel(
-                FeaturePolicy(actor, dtype), spec.space.low, spec.space.high
-            ),
-            n_agents=n,
-            method="marginal",
+            model, censored_action_model(actor, model, name), n_agents=n, method="marginal"
         )
-        for name, dtype in (("float64", torch.float64), ("float32", torch.float32))
+        for name in ("float64", "float32")
     }
     nuisance = losses["float64"].action_model.nuisance_init.double().expand(n, -1)
     params = torch.cat([space.to_unconstrained(theta.double())[:, free], nuisance], -1)

@@ -24,8 +24,8 @@ from irc_torchrl.algorithms.fit import fit_theta
 from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 from irc_torchrl.envs import Firefly1DModel
-from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
-from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
+from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 
@@ -37,12 +37,9 @@ def _task(name: str, actor_dtype: str):
         q = train_factorised_q(model, seed=0)
         return model, boltzmann_policy(model, q, 0.5), BoltzmannActionModel(q, 0.5), {}
     actor, model, _ = load_ensemble_policy("firefly2d")
-    spec = model.action_spec
-    action_model = CensoredGaussianActionModel(
-        FeaturePolicy(actor, ACTOR_DTYPES[actor_dtype]), spec.space.low, spec.space.high
-    )
+    action_model = censored_action_model(actor, model, actor_dtype)
     settings = {"n_screen": 16, "n_starts": 2, "curvature": "bfgs", "covariance": "sandwich"}
-    return model, motor_noise_policy(actor, spec, 0.1), action_model, settings
+    return model, motor_noise_policy(actor, model.action_spec, 0.1), action_model, settings
 
 
 def main() -> None:

@@ -17,8 +17,7 @@ from irc_torchrl.algorithms.recover2d import (
     simulate_recovery_agents,
 )
 from irc_torchrl.config import RecordingFitConfig
-from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 SMALL = dict(
@@ -32,18 +31,10 @@ def recovery():
     return recover_firefly2d(Recovery2DConfig(**SMALL))
 
 
-def actor_action_model(actor, model, dtype: str | None = None) -> CensoredGaussianActionModel:
-    """The censored motor-noise model around the shipped actor, run in ``dtype`` (a name of
-    ``ACTOR_DTYPES``; ``None``: the likelihood's float64)."""
-    low, high = model.action_spec.space.low, model.action_spec.space.high
-    policy = FeaturePolicy(actor, None if dtype is None else ACTOR_DTYPES[dtype])
-    return CensoredGaussianActionModel(policy, low, high)
-
-
 @pytest.fixture(scope="module")
 def shipped():
     actor, model, _ = load_ensemble_policy("firefly2d")
-    return actor, model, actor_action_model(actor, model)
+    return actor, model, censored_action_model(actor, model)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +51,7 @@ def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, 
     # (the likelihood the recovery fitted: its actor's precision)
     actor, model, _ = shipped
     held, truth, motor = at_truth
-    action_model = actor_action_model(actor, model, Recovery2DConfig(**SMALL).actor_dtype)
+    action_model = censored_action_model(actor, model, Recovery2DConfig(**SMALL).actor_dtype)
     for method, result in recovery[2].items():
         loss = InverseRationalLoss(model, action_model, n_agents=truth.shape[0], method=method)
         with torch.no_grad():
@@ -147,7 +138,7 @@ def test_a_float32_actor_moves_the_likelihood_far_less_than_the_fits_tolerance(s
     x = torch.cat([space.to_unconstrained(truth)[:, space.free_mask], motor], -1)
     out = {}
     for dtype in ("float64", "float32"):
-        action_model = actor_action_model(actor, model, dtype)
+        action_model = censored_action_model(actor, model, dtype)
         loss = InverseRationalLoss(model, action_model, n_agents=len(x), method="marginal")
         p = x.clone().requires_grad_(True)
         value = loss.log_likelihood(loss.theta(p[:, :k]), p[:, k:], held)
@@ -179,7 +170,7 @@ def test_likelihood_and_gradient_are_finite_at_the_edges_of_theta_and_motor_nois
     # a clipped action thousands of sds out made the tail's variance factor exceed 1 (NaN).
     # Both precisions of the actor (float32 is irc recover's and irc fit's default)
     actor, model, _ = shipped
-    action_model = actor_action_model(actor, model, dtype)
+    action_model = censored_action_model(actor, model, dtype)
     space = model.theta_space
     trials, _, _ = simulate_recovery_agents(
         model, actor, Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=0, n_trials=12)

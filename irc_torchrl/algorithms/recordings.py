@@ -43,7 +43,7 @@ from irc_torchrl.data.files import atomic_path, write_json
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
-from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
+from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.fisher import Intervals
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
@@ -287,13 +287,7 @@ def fit_recordings(
         recordings = [read_trials(p, model, units=units) for p in paths]
         read_s = time.perf_counter() - start
         truths = [_simulated_truth(p) for p in paths]
-        spec = model.action_spec
-        action_model = CensoredGaussianActionModel(
-            FeaturePolicy(actor, ACTOR_DTYPES[config.actor_dtype]),
-            spec.space.low,
-            spec.space.high,
-            config.motor_noise,
-        )
+        action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
         fits, beliefs, timings, checks = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress
         )

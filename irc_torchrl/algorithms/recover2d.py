@@ -40,7 +40,7 @@ from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import FitConfig, _one_of, config_to_dict
 from irc_torchrl.data.files import atomic_dir, write_json, write_text
 from irc_torchrl.envs.firefly2d import Firefly2DModel
-from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, FeaturePolicy
+from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.objectives.marginal import FINAL_STEPS, check_mixture
@@ -200,13 +200,7 @@ def recover_firefly2d(
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
     n_agents = theta_true.shape[0]
-    low, high = model.action_spec.space.low, model.action_spec.space.high
-    action_model = CensoredGaussianActionModel(
-        FeaturePolicy(actor, ACTOR_DTYPES[config.actor_dtype]),
-        low,
-        high,
-        motor_noise=config.motor_noise,
-    )
+    action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
     summary: dict = {
         "task": config.task,
         "seed": config.seed,

@@ -17,8 +17,16 @@ from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
 
 from irc_torchrl.envs.belief import BeliefFeatures
 from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 
-__all__ = ["ACTIVATIONS", "ACTOR_DTYPES", "FeaturePolicy", "make_actor", "make_critic"]
+__all__ = [
+    "ACTIVATIONS",
+    "ACTOR_DTYPES",
+    "FeaturePolicy",
+    "censored_action_model",
+    "make_actor",
+    "make_critic",
+]
 
 #: activations a config may name
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -115,3 +123,17 @@ class FeaturePolicy(nn.Module):
             )
         half = (self.high - self.low).to(dtype) / 2
         return self.low.to(dtype) + half + half * torch.tanh(pre)
+
+
+def censored_action_model(
+    actor: TensorDictSequential,
+    model: TaskModel,
+    actor_dtype: str = "float64",
+    motor_noise: float = 0.1,
+) -> CensoredGaussianActionModel:
+    """Algorithm 2's action model around a trained actor: its output plus censored Gaussian
+    motor noise within the task's action bounds, the network run in ``actor_dtype`` (a name of
+    :data:`ACTOR_DTYPES`) inside the float64 likelihood."""
+    bounds = model.action_spec.space
+    policy = FeaturePolicy(actor, ACTOR_DTYPES[actor_dtype])
+    return CensoredGaussianActionModel(policy, bounds.low, bounds.high, motor_noise)
