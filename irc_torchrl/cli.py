@@ -293,7 +293,8 @@ def build_parser() -> argparse.ArgumentParser:
             "components=16 carries marginal's belief as 16 Gaussians through each trial's "
             "last 4 steps; calibrate=2 (the default; 0: raw intervals only, in a third of the "
             "time) simulates 2 datasets per agent at its θ̂, refits them the same way and "
-            "scales each parameter's intervals until 95% of the refits' cover."
+            "scales each parameter's intervals until 95% of the refits' cover (each "
+            "parameter's tail shrunk toward all parameters' by as much as it is noise)."
         ),
     )
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")

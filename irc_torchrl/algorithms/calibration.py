@@ -9,6 +9,17 @@ is the pivot whose 95% quantile over agents and datasets is the factor that make
 intervals cover (bootstrap-t, one factor per parameter pooled over agents). Applied to the
 real fits it calibrates them to the extent the pivot's spread at θ̂ is its spread at the
 truth, which is what a simulation of the recovery can check.
+
+A 95% quantile read off one parameter's refits alone rests on its few largest (4 of 80 for
+40 agents × 2 datasets): over three draws of the 2D recovery one parameter's factor ranged
+1.27–2.12. The factor is its median size (where every refit counts) times its tail (the 95%
+quantile over the median), and by default each parameter's tail is shrunk toward the tail all
+parameters share by as much as the refits say it is imprecise (empirical Bayes: the spread of
+the tails against their bootstrap variances). On those draws the marginal estimator's tails
+varied by no more than their noise (4.0–7.3 per parameter, the real data's 3.4–5.4); over
+five draws (200 agents, two drawn after the rule was chosen) its calibrated coverage per draw
+and parameter lay inside 0.90–0.98 in 36 of 40 cells, against 33 with each parameter's own
+quantile (README).
 """
 
 from __future__ import annotations
@@ -30,6 +41,7 @@ from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
     "MIN_REFITS",
+    "TAILS",
     "Calibration",
     "agent_intervals",
     "calibrate_intervals",
@@ -40,8 +52,14 @@ __all__ = [
 
 #: unconstrained coordinates are clamped here when intervals are widened (as Wald ends are)
 _EDGE = 40.0
-#: refits per parameter below which a factor's 95% quantile is read off its last one or two
+#: refits per parameter below which its factor rests on too few (its own 95% quantile on its
+#: last one or two)
 MIN_REFITS = 40
+#: how a parameter's tail (the 95% quantile of |pivot| over its median) is read: its own shrunk
+#: toward all parameters' by as much as it is noise, or its own alone
+TAILS = ("shrunk", "own")
+#: bootstrap resamples of the agents that measure how precisely each parameter's tail is read
+_RESAMPLES = 200
 
 
 def interval_pivots(space: ThetaSpace, theta_true: torch.Tensor, result: FitResult) -> torch.Tensor:
@@ -77,20 +95,38 @@ class Calibration:
     names: list[str]
     factor: torch.Tensor
     pivots: torch.Tensor
+    #: how the factors' tails were read (one of :data:`TAILS`)
+    tail: str = "shrunk"
 
     @classmethod
-    def from_pivots(cls, names: list[str], pivots: torch.Tensor) -> Calibration:
-        """The factor as the 95% quantile of ``|pivot|`` over datasets and agents, over Z95."""
+    def from_pivots(
+        cls, names: list[str], pivots: torch.Tensor, tail: str = "shrunk"
+    ) -> Calibration:
+        """The factors from refits' pivots ``[n_datasets, n_agents, k]``: per parameter the 95%
+        quantile of ``|pivot|`` over datasets and agents, over Z95. ``tail="own"`` reads it off
+        the parameter's refits alone; ``"shrunk"`` as its median (of its nonzero ones: a refit
+        exactly on θ̂, both on a bound, has no scale) times its tail, the quantile over the
+        median, shrunk toward the tail of all parameters (:func:`_shrink_tails`). A parameter
+        whose refits are more than 5% infinite (missing with zero-width intervals) gets an
+        infinite factor either way."""
+        if tail not in TAILS:
+            raise ValueError(f"tail: expected one of {TAILS}, got {tail!r}")
         if pivots.ndim != 3 or pivots.shape[-1] != len(names):
             raise ValueError(
                 f"pivots: expected [n_datasets, n_agents, {len(names)}], got {list(pivots.shape)}"
             )
-        size = pivots.abs().flatten(0, 1)
+        size = pivots.abs()
+        flat = size.flatten(0, 1)
         top = torch.finfo(size.dtype).max
-        quantile = torch.nanquantile(size.clamp_max(top), 0.95, dim=0)
-        unknown = quantile.isnan() | (quantile >= top / 2)
+        if tail == "own":
+            quantile = torch.nanquantile(flat.clamp_max(top), 0.95, dim=0)
+        else:
+            log_tail, scale = _log_tails(flat)
+            quantile = scale * _shrink_tails(size, log_tail).exp()
+        infinite = flat.isinf().sum(0) > 0.05 * (~flat.isnan()).sum(0)
+        unknown = ~torch.isfinite(quantile) | (quantile >= top / 2) | infinite
         factor = torch.where(unknown, torch.inf, quantile / Z95)
-        return cls(names=list(names), factor=factor, pivots=pivots)
+        return cls(names=list(names), factor=factor, pivots=pivots, tail=tail)
 
     @property
     def refits(self) -> torch.Tensor:
@@ -103,6 +139,7 @@ class Calibration:
         refit had no interval)."""
         return {
             "n_datasets": self.pivots.shape[0],
+            "tail": self.tail,
             "factor": {
                 name: c if math.isfinite(c) else None
                 for name, c in zip(self.names, self.factor.tolist(), strict=True)
@@ -157,6 +194,43 @@ class Calibration:
         return dataclasses.replace(result, intervals=intervals)
 
 
+def _log_tails(size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per parameter of ``|pivot|`` ``[..., n, k]`` (NaN: no interval), the log of its 95%
+    quantile over its median, and that median (of the nonzero ones), ``[..., k]`` each."""
+    scale = torch.nanmedian(size.where(size > 0, torch.nan), dim=-2).values
+    quantile = torch.nanquantile(size.clamp_max(torch.finfo(size.dtype).max), 0.95, dim=-2)
+    return (quantile / scale).log(), scale
+
+
+def _shrink_tails(size: torch.Tensor, log_tail: torch.Tensor) -> torch.Tensor:
+    """The log tails ``[k]`` of ``|pivot|`` ``[n_datasets, n_agents, k]`` shrunk toward their
+    precision-weighted mean by the share of their spread that is not noise.
+
+    Each tail's variance ``v`` comes from a seeded bootstrap over agents (an agent's datasets
+    stay together), the tails' true spread ``τ²`` is their variance less the mean ``v``, and a
+    tail moves to ``mean + τ²/(τ² + v) (tail − mean)``: all the way to the mean where the tails
+    differ no more than their noise, hardly at all where they differ by far more.
+    """
+    n_agents = size.shape[1]
+    picks = torch.randint(
+        n_agents, (_RESAMPLES, n_agents), generator=torch.Generator().manual_seed(0)
+    )
+    resampled, _ = _log_tails(size[:, picks].movedim(1, 0).flatten(1, 2))
+    ok = torch.isfinite(resampled)
+    count = ok.sum(0)
+    mean = torch.where(ok, resampled, 0.0).sum(0) / count.clamp_min(1)
+    variance = torch.where(ok, resampled - mean, 0.0).pow(2).sum(0) / (count - 1).clamp_min(1)
+    known = torch.isfinite(log_tail) & (count > 1)
+    if known.sum() < 2:
+        return log_tail
+    tails, precision = log_tail[known], variance[known].clamp_min(1e-12).reciprocal()
+    centre = (precision * tails).sum() / precision.sum()
+    spread = (tails.var() - variance[known].mean()).clamp_min(0)
+    total = spread + variance
+    weight = torch.where(total > 0, spread / total.clamp_min(1e-300), 1.0)
+    return torch.where(known, centre + weight * (log_tail - centre), log_tail)
+
+
 def agent_intervals(result: FitResult) -> list[dict]:
     """Per agent, the intervals of :meth:`FitResult.agent` (``ci_low``, ``ci_high``, ``std``,
     ``identified``): what a calibrated fit changes, for ``summary.json``."""
@@ -207,6 +281,7 @@ def calibrate_intervals(
     theta_generating: torch.Tensor,
     refit: Callable[[int], dict[str, FitResult]],
     n_datasets: int,
+    tail: str = "shrunk",
 ) -> dict[str, Calibration]:
     """One :class:`Calibration` per estimator from ``n_datasets`` simulated datasets.
 
@@ -217,15 +292,18 @@ def calibrate_intervals(
         refit: ``refit(i)`` simulates dataset ``i`` at ``theta_generating`` and fits it the way
             the real data were, returning each estimator's :class:`FitResult`.
         n_datasets: how many datasets (each holds one per agent).
+        tail: how the factors' tail is read (:meth:`Calibration.from_pivots`).
     """
     if n_datasets < 1:
         raise ValueError(f"n_datasets: expected an integer ≥ 1, got {n_datasets}")
+    if tail not in TAILS:
+        raise ValueError(f"tail: expected one of {TAILS}, got {tail!r}")
     theta_generating = space.validate(theta_generating, "theta_generating")
     pivots: dict[str, list[torch.Tensor]] = {}
     for i in range(n_datasets):
         for method, result in refit(i).items():
             pivots.setdefault(method, []).append(interval_pivots(space, theta_generating, result))
     return {
-        method: Calibration.from_pivots(space.free_names, torch.stack(rows))
+        method: Calibration.from_pivots(space.free_names, torch.stack(rows), tail)
         for method, rows in pivots.items()
     }
