@@ -109,8 +109,7 @@ class Calibration:
         median, shrunk toward the tail of all parameters (:func:`_shrink_tails`). A parameter
         whose refits are more than 5% infinite (missing with zero-width intervals) gets an
         infinite factor either way."""
-        if tail not in TAILS:
-            raise ValueError(f"tail: expected one of {TAILS}, got {tail!r}")
+        _check_tail(tail)
         if pivots.ndim != 3 or pivots.shape[-1] != len(names):
             raise ValueError(
                 f"pivots: expected [n_datasets, n_agents, {len(names)}], got {list(pivots.shape)}"
@@ -118,11 +117,9 @@ class Calibration:
         size = pivots.abs()
         flat = size.flatten(0, 1)
         top = torch.finfo(size.dtype).max
-        if tail == "own":
-            quantile = torch.nanquantile(flat.clamp_max(top), 0.95, dim=0)
-        else:
-            log_tail, scale = _log_tails(flat)
-            quantile = scale * _shrink_tails(size, log_tail).exp()
+        quantile, scale = _quantile_and_scale(flat)
+        if tail == "shrunk":
+            quantile = scale * _shrink_tails(size, (quantile / scale).log()).exp()
         infinite = flat.isinf().sum(0) > 0.05 * (~flat.isnan()).sum(0)
         unknown = ~torch.isfinite(quantile) | (quantile >= top / 2) | infinite
         factor = torch.where(unknown, torch.inf, quantile / Z95)
@@ -194,12 +191,18 @@ class Calibration:
         return dataclasses.replace(result, intervals=intervals)
 
 
-def _log_tails(size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per parameter of ``|pivot|`` ``[..., n, k]`` (NaN: no interval), the log of its 95%
-    quantile over its median, and that median (of the nonzero ones), ``[..., k]`` each."""
-    scale = torch.nanmedian(size.where(size > 0, torch.nan), dim=-2).values
+def _check_tail(tail: str) -> None:
+    """Refuse a tail rule that is not one of :data:`TAILS`."""
+    if tail not in TAILS:
+        raise ValueError(f"tail: expected one of {TAILS}, got {tail!r}")
+
+
+def _quantile_and_scale(size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per parameter of ``|pivot|`` ``[..., n, k]`` (NaN: no interval), its 95% quantile (an
+    infinite pivot counted as the largest float) and its median over the nonzero ones,
+    ``[..., k]`` each."""
     quantile = torch.nanquantile(size.clamp_max(torch.finfo(size.dtype).max), 0.95, dim=-2)
-    return (quantile / scale).log(), scale
+    return quantile, torch.nanmedian(size.where(size > 0, torch.nan), dim=-2).values
 
 
 def _shrink_tails(size: torch.Tensor, log_tail: torch.Tensor) -> torch.Tensor:
@@ -215,7 +218,8 @@ def _shrink_tails(size: torch.Tensor, log_tail: torch.Tensor) -> torch.Tensor:
     picks = torch.randint(
         n_agents, (_RESAMPLES, n_agents), generator=torch.Generator().manual_seed(0)
     )
-    resampled, _ = _log_tails(size[:, picks].movedim(1, 0).flatten(1, 2))
+    quantile, scale = _quantile_and_scale(size[:, picks].movedim(1, 0).flatten(1, 2))
+    resampled = (quantile / scale).log()
     ok = torch.isfinite(resampled)
     count = ok.sum(0)
     mean = torch.where(ok, resampled, 0.0).sum(0) / count.clamp_min(1)
@@ -296,8 +300,7 @@ def calibrate_intervals(
     """
     if n_datasets < 1:
         raise ValueError(f"n_datasets: expected an integer ≥ 1, got {n_datasets}")
-    if tail not in TAILS:
-        raise ValueError(f"tail: expected one of {TAILS}, got {tail!r}")
+    _check_tail(tail)
     theta_generating = space.validate(theta_generating, "theta_generating")
     pivots: dict[str, list[torch.Tensor]] = {}
     for i in range(n_datasets):
