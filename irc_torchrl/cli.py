@@ -294,7 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
             "last 4 steps; calibrate=2 (the default; 0: raw intervals only, in a third of the "
             "time) simulates 2 datasets per agent at its θ̂, refits them the same way and "
             "scales each parameter's intervals until 95% of the refits' cover (each "
-            "parameter's tail shrunk toward all parameters' by as much as it is noise)."
+            "parameter's tail shrunk toward all parameters' by as much as it is noise; "
+            "calibration_tail=own: its own alone)."
         ),
     )
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")

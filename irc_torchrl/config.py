@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from irc_torchrl.algorithms.calibration import TAILS
 from irc_torchrl.algorithms.ensemble import (
     DDPGConfig,
     EvaluationConfig,
@@ -147,6 +148,9 @@ class RecordingFitConfig:
     #: number of trials) and refitted the same way, to calibrate the intervals
     #: (:mod:`~irc_torchrl.algorithms.calibration`; 0: none). Each costs about the fit again
     calibrate: int = 0
+    #: how each parameter's calibration factor reads its tail: "shrunk" toward all
+    #: parameters' by as much as it is noise, or its "own" 95% quantile alone
+    calibration_tail: str = "shrunk"
     #: the precision the frozen actor runs in inside the float64 likelihood (see
     #: ``actor_dtype`` of ``irc recover``)
     actor_dtype: str = "float32"
@@ -181,6 +185,7 @@ class RecordingFitConfig:
         _one_of("covariance", self.covariance, COVARIANCES)
         _one_of("intervals", self.intervals, INTERVALS)
         _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
+        _one_of("calibration_tail", self.calibration_tail, TAILS)
         return self
 
 

@@ -304,6 +304,7 @@ def test_recovery_reports_intervals_calibrated_on_simulated_refits():
     space = Firefly2DModel().theta_space
     calibrated = summary["methods"]["map"]["calibrated"]
     assert calibrated["n_datasets"] == 1 and list(calibrated["factor"]) == space.free_names
+    assert calibrated["tail"] == config.calibration_tail == "shrunk"
     # no refit with an interval: no factor (null in the JSON), the intervals the whole range
     factor = torch.tensor(
         [torch.inf if c is None else c for c in calibrated["factor"].values()], dtype=torch.float64

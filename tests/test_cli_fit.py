@@ -108,10 +108,12 @@ def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulate
     # calibrate=1: a recording simulated at θ̂ and refitted; each interval is the fit's own
     # scaled about θ̂ (in the fit's coordinates) by its parameter's factor
     args = ["fit", str(simulated / "agent0.csv"), "--out", str(tmp_path), "--quiet"]
-    assert main([*args, "--method", "map", "--free", ",".join(FREE), "calibrate=1"]) == 0
+    options = ["calibrate=1", "calibration_tail=own"]
+    assert main([*args, "--method", "map", "--free", ",".join(FREE), *options]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     calibration = summary["calibration"]
     assert calibration["n_datasets"] == 1 and list(calibration["factor"]) == FREE
+    assert calibration["tail"] == "own"
     assert np.array(calibration["pivots"], dtype=float).shape == (1, 1, len(FREE))
     assert set(summary["calibrated_parameters"]) == set(FREE)
     (agent,) = summary["agents"]

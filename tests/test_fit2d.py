@@ -150,10 +150,14 @@ def test_a_float32_actor_moves_the_likelihood_far_less_than_the_fits_tolerance(s
     assert FeaturePolicy(actor, torch.float32)(features).dtype == torch.float64
 
 
-def test_an_unknown_actor_dtype_is_a_clear_error():
+def test_an_unknown_actor_dtype_or_calibration_tail_is_a_clear_error():
     for config in (Recovery2DConfig(actor_dtype="half"), RecordingFitConfig(actor_dtype="half")):
         with pytest.raises(ValueError, match="actor_dtype must be one of"):
             config.validate()
+    tails = r"calibration_tail must be one of \('shrunk', 'own'\)"
+    for config in (Recovery2DConfig, RecordingFitConfig):
+        with pytest.raises(ValueError, match=tails):
+            config(calibration_tail="pooled").validate()
 
 
 @pytest.mark.parametrize(
@@ -277,3 +281,4 @@ def test_recover_config_yaml_equals_the_embedded_default_and_checks_keys():
         load_recovery2d_config(None, ["motor_noise=0"])
     with pytest.raises(ValueError, match="components: expected 1 or more than the belief's 5"):
         load_recovery2d_config(None, ["components=3"])
+    assert load_recovery2d_config(None, ["calibration_tail=own"]).calibration_tail == "own"

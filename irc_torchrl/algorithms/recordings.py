@@ -458,7 +458,7 @@ def _calibrate_fits(
         return refits
 
     theta = result.theta_hat.float().cpu()
-    return calibrate_intervals(space, theta, refit, config.calibrate)
+    return calibrate_intervals(space, theta, refit, config.calibrate, config.calibration_tail)
 
 
 def _add_calibrated(
