@@ -10,8 +10,9 @@ updates per second, and the CPU time to 95% of the final evaluation return. Then
 specialist (every θ parameter fixed) at 5 θ spread over the prior with the same frame budget
 (a specialist that never learns is trained again with the next seed, up to 3) and compares
 returns with the ensemble and with the belief-pursuit controller at those θ, and
-how much each θ parameter moves the ensemble's actions and the controller's (what Algorithm 2
-can read from them).
+how much each θ parameter moves the ensemble's actions and the controller's, and how wide the
+intervals of Algorithm 2 would come out on 20 agents acting with the ensemble (what it can read
+from them).
 When ``stable_baselines3`` imports, TD3 on the gymnasium adapter gets the same CPU time.
 """
 
@@ -32,9 +33,13 @@ from irc_torchrl.algorithms.ensemble import (
     theta_sensitivity,
     train_ensemble,
 )
+from irc_torchrl.algorithms.fit import expected_intervals
+from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import load_firefly2d_config
 from irc_torchrl.data.files import write_json
+from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.pursuit import BeliefPursuit
+from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 #: seeds a specialist gets, one after the other, until one learns (return > 0)
 SPECIALIST_SEEDS = 3
@@ -110,6 +115,22 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
             }
         )
     return rows
+
+
+def information_widths(actor, model, n_agents: int = 20, n_trials: int = 100) -> dict:
+    """Median width over agents of the 95% intervals that the Fisher information at θ*
+    predicts (:func:`expected_intervals`), per free parameter: how much of θ Algorithm 2 can
+    recover from agents acting with ``actor`` (θ* from the prior, motor noise 0.1)."""
+    space = model.theta_space
+    theta = space.sample((n_agents,), generator=torch.Generator().manual_seed(0))
+    policy = motor_noise_policy(actor, model.action_spec, 0.1)
+    trials = simulate_agents(model, policy, theta, n_trials, space.default(), seed=1)
+    trials = trials.select("state", "action", "target", "mask", "task_theta")
+    action_model = censored_action_model(actor, model, "float32")
+    loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
+    intervals = expected_intervals(loss, trials, theta.double())
+    widths = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
+    return dict(zip(space.free_names, widths.tolist(), strict=True))
 
 
 def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> list[dict] | None:
@@ -201,11 +222,16 @@ def main() -> None:
         name: theta_sensitivity(model, policy, grid)
         for name, policy in (("ensemble", runs[0]["actor"]), ("pursuit", BeliefPursuit(model)))
     }
-    print("mean |Δ action| as one θ parameter spans its range (a_v / a_ω)")
+    widths = information_widths(runs[0]["actor"], model)
+    print(
+        "mean |Δ action| as one θ parameter spans its range (a_v / a_ω); median width of the "
+        "95% intervals the Fisher information at θ* predicts (20 agents × 100 trials)"
+    )
     for name in model.theta_space.free_names:
         print(
             f"  {name:>12}"
             + "".join(f"  {k} {v[name][0]:.3f} / {v[name][1]:.3f}" for k, v in sensitivity.items())
+            + f"  width {widths[name]:.3f}"
         )
     history = runs[0]["history"]
     budget = history[-1]["train_cpu_s"]
@@ -233,6 +259,7 @@ def main() -> None:
             "runs": [{k: v for k, v in r.items() if k not in ("actor", "model")} for r in runs],
             "specialists": rows,
             "theta_sensitivity": sensitivity,
+            "expected_interval_widths": widths,
             "td3": [{k: v for k, v in row.items() if not k.startswith("per_theta")} for row in td3]
             if td3
             else None,

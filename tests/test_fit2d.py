@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
-from irc_torchrl.algorithms.fit import fit_theta
+from irc_torchrl.algorithms.fit import expected_intervals, fit_theta
 from irc_torchrl.algorithms.recover2d import (
     RECORDED,
     Recovery2DConfig,
@@ -148,6 +148,65 @@ def test_a_float32_actor_moves_the_likelihood_far_less_than_the_fits_tolerance(s
     assert ((g64 - g32).norm(dim=-1) / g64.norm(dim=-1)).max() < 1e-3, (g64, g32)
     features = torch.zeros(3, FeaturePolicy(actor).mlp[0].in_features, dtype=torch.float64)
     assert FeaturePolicy(actor, torch.float32)(features).dtype == torch.float64
+
+
+@pytest.fixture(scope="module")
+def fitted_loss(shipped):
+    """The likelihood the recovery fitted (its actor's precision), for its three agents."""
+    actor, model, _ = shipped
+    action_model = censored_action_model(actor, model, Recovery2DConfig(**SMALL).actor_dtype)
+    return InverseRationalLoss(model, action_model, n_agents=3, method="marginal")
+
+
+def _free_widths(intervals, space):
+    return (intervals.high - intervals.low)[:, space.free_mask]
+
+
+def test_expected_intervals_at_the_truth_are_as_wide_as_the_fitted_ones(
+    recovery, fitted_loss, at_truth
+):
+    # no fit: the information of actions drawn along the recorded trials at θ* predicts the
+    # width of the intervals a fit gets (measured: fitted over predicted width, a median 0.85
+    # over 3 agents × 8 parameters; another seed's draws move a width by 19% at most)
+    held, truth, motor = at_truth
+    space = fitted_loss.theta_space
+    predicted = _free_widths(expected_intervals(fitted_loss, held, truth, motor), space)
+    fitted = _free_widths(recovery[2]["marginal"].intervals, space)
+    ratio = (fitted / predicted).median()
+    assert 0.6 < ratio < 1.4, ratio
+
+
+def test_expected_intervals_narrow_with_the_trials_and_repeat_for_a_seed(fitted_loss, at_truth):
+    # standard deviations fall as 1/√trials: 10 trials against all 30, √3 = 1.73 (measured
+    # median 1.9 over 3 agents × 8 parameters)
+    held, truth, motor = at_truth
+    every = expected_intervals(fitted_loss, held, truth, motor, seed=0)
+    first = expected_intervals(fitted_loss, held[:, :10], truth, motor, seed=0)
+    again = expected_intervals(fitted_loss, held[:, :10], truth, motor, seed=0)
+    assert torch.equal(first.std, again.std)
+    ratio = (first.std / every.std)[:, fitted_loss.theta_space.free_mask].median()
+    assert 1.4 < ratio < 2.4, ratio
+
+
+def test_expected_intervals_refuse_bad_input_before_any_work(fitted_loss, at_truth, monkeypatch):
+    held, truth, motor = at_truth
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("work was done before the error")
+
+    monkeypatch.setattr(fitted_loss, "log_likelihood_and_draws", no_work)
+    outside = truth.clone()
+    outside[0, 0] = 99.0
+    cases = [
+        (dict(theta=truth[:2]), r"theta: expected one θ per agent, \[3, 9\]"),
+        (dict(theta=outside), "theta: g_v=99 is outside its space"),
+        (dict(nuisance=motor[:, :1]), r"nuisance: expected finite values \[3, 2\]"),
+        (dict(nuisance=motor * torch.nan), "nuisance: expected finite values"),
+        (dict(draws=0), "draws: expected an integer ≥ 1"),
+    ]
+    for change, message in cases:
+        with pytest.raises(ValueError, match=message):
+            expected_intervals(fitted_loss, held, **(dict(theta=truth, nuisance=motor) | change))
 
 
 def test_an_unknown_actor_dtype_or_calibration_tail_is_a_clear_error():

@@ -22,7 +22,13 @@ from irc_torchrl.algorithms.ensemble import (
     theta_sensitivity,
     train_ensemble,
 )
-from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check, profile_intervals
+from irc_torchrl.algorithms.fit import (
+    FitResult,
+    expected_intervals,
+    fit_theta,
+    particle_check,
+    profile_intervals,
+)
 from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 
@@ -34,6 +40,7 @@ __all__ = [
     "calibrate_intervals",
     "critic_slices",
     "evaluate_policy",
+    "expected_intervals",
     "fit_theta",
     "greedy_returns",
     "interval_pivots",

@@ -36,6 +36,7 @@ __all__ = [
     "CURVATURES",
     "INTERVALS",
     "FitResult",
+    "expected_intervals",
     "fit_theta",
     "particle_check",
     "profile_intervals",
@@ -330,6 +331,55 @@ def fit_theta(
     if intervals == "profile":
         result = dataclasses.replace(result, intervals=profile_intervals(loss, trials, result))
     return result
+
+
+def expected_intervals(
+    loss: InverseRationalLoss,
+    trials: TensorDictBase,
+    theta: torch.Tensor,
+    nuisance: torch.Tensor | None = None,
+    draws: int = 8,
+    seed: int = 0,
+) -> Intervals:
+    """The 95% intervals that the Fisher information of ``trials`` at ``theta`` predicts.
+
+    No fit: the information is the sum over trials of the outer products of the scores of
+    actions drawn from the model along the recorded trials (Fisher scoring's), averaged over
+    ``draws`` sets of draws (one set has rank at most the number of trials), so it says how
+    tightly such trials pin each parameter of an agent whose θ is ``theta`` (``[n_agents, d]``,
+    e.g. a simulated agent's θ*): how much a policy's actions reveal of θ, or how many trials
+    an experiment needs. ``nuisance`` (the action model's, ``[n_agents, m]``) defaults to its
+    initial value.
+    """
+    if draws < 1:
+        raise ValueError(f"draws: expected an integer ≥ 1, got {draws}")
+    trials = validate_trials(trials, loss.model)
+    space = loss.theta_space
+    n_agents, device = trials.shape[0], trials.device
+    theta = space.validate(theta, "theta").double()
+    if theta.shape != (n_agents, space.dim):
+        raise ValueError(
+            f"theta: expected one θ per agent, [{n_agents}, {space.dim}], got {list(theta.shape)}"
+        )
+    init = loss.action_model.nuisance_init.double()
+    if nuisance is None:
+        nuisance = init.expand(n_agents, -1)
+    elif nuisance.shape != (n_agents, init.numel()) or not torch.isfinite(nuisance).all():
+        raise ValueError(
+            f"nuisance: expected finite values [{n_agents}, {init.numel()}], "
+            f"got {list(nuisance.shape)}"
+        )
+    free = space.free_mask
+    k = int(free.sum())
+    theta_free = space.to_unconstrained(theta)[:, free]
+    params = torch.cat([theta_free, nuisance.double()], -1).to(device)
+    generator = torch.Generator().manual_seed(seed)
+
+    def sampled(p: torch.Tensor, data: TensorDictBase) -> tuple[torch.Tensor]:
+        return (_fisher_scoring(loss, k, p, data, generator)[2],)
+
+    information = sum(_by_rows(sampled, params, trials, GRAD_TRIALS)[0] for _ in range(draws))
+    return fisher_intervals(space, theta.to(device), theta_free.to(device), information / draws)
 
 
 def profile_intervals(
