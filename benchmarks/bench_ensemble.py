@@ -34,7 +34,7 @@ from irc_torchrl.algorithms.ensemble import (
     train_ensemble,
 )
 from irc_torchrl.algorithms.fit import expected_intervals
-from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.recover2d import RECORDED, Recovery2DConfig, simulate_recovery_agents
 from irc_torchrl.config import load_firefly2d_config
 from irc_torchrl.data.files import write_json
 from irc_torchrl.modules.actor_critic import censored_action_model
@@ -117,18 +117,17 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
     return rows
 
 
-def information_widths(actor, model, n_agents: int = 20, n_trials: int = 100) -> dict:
+def information_widths(actor, model, n_agents: int = 20, n_trials: int = 100) -> dict[str, float]:
     """Median width over agents of the 95% intervals that the Fisher information at θ*
     predicts (:func:`expected_intervals`), per free parameter: how much of θ Algorithm 2 can
-    recover from agents acting with ``actor`` (θ* from the prior, motor noise 0.1)."""
-    space = model.theta_space
-    theta = space.sample((n_agents,), generator=torch.Generator().manual_seed(0))
-    policy = motor_noise_policy(actor, model.action_spec, 0.1)
-    trials = simulate_agents(model, policy, theta, n_trials, space.default(), seed=1)
-    trials = trials.select("state", "action", "target", "mask", "task_theta")
-    action_model = censored_action_model(actor, model, "float32")
+    recover from agents acting with ``actor`` (``irc recover``'s agents whose model is right:
+    θ* from the prior, each in its own world, its motor noise; its float32 actor)."""
+    config = Recovery2DConfig(n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=n_trials)
+    trials, theta, _ = simulate_recovery_agents(model, actor, config)
+    action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
     loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
-    intervals = expected_intervals(loss, trials, theta.double())
+    intervals = expected_intervals(loss, trials.select(*RECORDED), theta)
+    space = model.theta_space
     widths = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
     return dict(zip(space.free_names, widths.tolist(), strict=True))
 

@@ -343,43 +343,49 @@ def expected_intervals(
 ) -> Intervals:
     """The 95% intervals that the Fisher information of ``trials`` at ``theta`` predicts.
 
-    No fit: the information is the sum over trials of the outer products of the scores of
-    actions drawn from the model along the recorded trials (Fisher scoring's), averaged over
-    ``draws`` sets of draws (one set has rank at most the number of trials), so it says how
-    tightly such trials pin each parameter of an agent whose θ is ``theta`` (``[n_agents, d]``,
-    e.g. a simulated agent's θ*): how much a policy's actions reveal of θ, or how many trials
-    an experiment needs. ``nuisance`` (the action model's, ``[n_agents, m]``) defaults to its
-    initial value.
+    No fit: the information is Fisher scoring's, the sum over trials of the outer products of
+    the scores of actions drawn from the model along the recorded states, averaged over
+    ``draws`` sets of draws (one set has rank at most the number of trials; ``seed`` seeds
+    them, and as in :func:`fit_theta` which draws a row gets depends on the rows sharing the
+    call). It says how tightly such trials pin each parameter of an agent whose θ is
+    ``theta`` (``[n_agents, d]``; fixed parameters take the space's values), e.g. a simulated
+    agent's θ*: how much a policy's actions reveal of θ, or how many trials an experiment
+    needs. ``nuisance`` (the action model's, ``[n_agents, m]``) defaults to its initial value.
     """
-    if draws < 1:
-        raise ValueError(f"draws: expected an integer ≥ 1, got {draws}")
+    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
+        raise ValueError(f"draws: expected an integer ≥ 1, got {draws!r}")
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents, device = trials.shape[0], trials.device
-    theta = space.validate(theta, "theta").double()
+    theta = space.validate(theta, "theta")
     if theta.shape != (n_agents, space.dim):
         raise ValueError(
             f"theta: expected one θ per agent, [{n_agents}, {space.dim}], got {list(theta.shape)}"
         )
-    init = loss.action_model.nuisance_init.double()
+    init = loss.action_model.nuisance_init
     if nuisance is None:
         nuisance = init.expand(n_agents, -1)
-    elif nuisance.shape != (n_agents, init.numel()) or not torch.isfinite(nuisance).all():
+    if not isinstance(nuisance, torch.Tensor) or not nuisance.is_floating_point():
+        raise TypeError(f"nuisance: expected a float tensor [{n_agents}, {init.numel()}]")
+    if nuisance.shape != (n_agents, init.numel()):
         raise ValueError(
-            f"nuisance: expected finite values [{n_agents}, {init.numel()}], "
-            f"got {list(nuisance.shape)}"
+            f"nuisance: expected shape [{n_agents}, {init.numel()}], got {list(nuisance.shape)}"
         )
-    free = space.free_mask
-    k = int(free.sum())
-    theta_free = space.to_unconstrained(theta)[:, free]
-    params = torch.cat([theta_free, nuisance.double()], -1).to(device)
+    if not torch.isfinite(nuisance).all():
+        raise ValueError("nuisance: expected finite values (log-scales), got NaN or inf")
+    k = int(space.free_mask.sum())
+    theta_free = space.to_unconstrained(theta.detach().double().to(device))[:, space.free_mask]
+    params = torch.cat([theta_free, nuisance.detach().double().to(device)], -1)
     generator = torch.Generator().manual_seed(seed)
 
     def sampled(p: torch.Tensor, data: TensorDictBase) -> tuple[torch.Tensor]:
         return (_fisher_scoring(loss, k, p, data, generator)[2],)
 
-    information = sum(_by_rows(sampled, params, trials, GRAD_TRIALS)[0] for _ in range(draws))
-    return fisher_intervals(space, theta.to(device), theta_free.to(device), information / draws)
+    information = torch.stack(
+        [_by_rows(sampled, params, trials, GRAD_TRIALS)[0] for _ in range(draws)]
+    ).mean(0)
+    # centred as fit_theta's: θ from its free coordinates, the fixed ones the space's
+    return fisher_intervals(space, loss.theta(theta_free).detach(), theta_free, information)
 
 
 def profile_intervals(
