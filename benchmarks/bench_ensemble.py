@@ -33,13 +33,10 @@ from irc_torchrl.algorithms.ensemble import (
     theta_sensitivity,
     train_ensemble,
 )
-from irc_torchrl.algorithms.fit import expected_intervals
-from irc_torchrl.algorithms.recover2d import RECORDED, Recovery2DConfig, simulate_recovery_agents
+from irc_torchrl.algorithms.recover2d import predicted_widths
 from irc_torchrl.config import load_firefly2d_config
 from irc_torchrl.data.files import write_json
-from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.pursuit import BeliefPursuit
-from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 #: seeds a specialist gets, one after the other, until one learns (return > 0)
 SPECIALIST_SEEDS = 3
@@ -115,21 +112,6 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
             }
         )
     return rows
-
-
-def information_widths(actor, model, n_agents: int = 20, n_trials: int = 100) -> dict[str, float]:
-    """Median width over agents of the 95% intervals that the Fisher information at θ*
-    predicts (:func:`expected_intervals`), per free parameter: how much of θ Algorithm 2 can
-    recover from agents acting with ``actor`` (``irc recover``'s agents whose model is right:
-    θ* from the prior, each in its own world, its motor noise; its float32 actor)."""
-    config = Recovery2DConfig(n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=n_trials)
-    trials, theta, _ = simulate_recovery_agents(model, actor, config)
-    action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
-    loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
-    intervals = expected_intervals(loss, trials.select(*RECORDED), theta)
-    space = model.theta_space
-    widths = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
-    return dict(zip(space.free_names, widths.tolist(), strict=True))
 
 
 def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> list[dict] | None:
@@ -221,7 +203,7 @@ def main() -> None:
         name: theta_sensitivity(model, policy, grid)
         for name, policy in (("ensemble", runs[0]["actor"]), ("pursuit", BeliefPursuit(model)))
     }
-    widths = information_widths(runs[0]["actor"], model)
+    widths = predicted_widths(model, runs[0]["actor"])[100]
     print(
         "mean |Δ action| as one θ parameter spans its range (a_v / a_ω); median width of the "
         "95% intervals the Fisher information at θ* predicts (20 agents × 100 trials)"

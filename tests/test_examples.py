@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -74,3 +75,15 @@ def test_every_part_the_readme_lists_is_importable_where_it_says():
             assert any(hasattr(m, name) for m in modules), (name, [m.__name__ for m in modules])
             checked += 1
     assert checked >= 25, checked  # 29 names today: the parser must not silently skip rows
+
+
+def test_plan_an_experiment_predicts_intervals_that_narrow_with_the_trials(tmp_path):
+    stdout, plan = _run("plan_an_experiment.py", tmp_path)
+    few, many = plan["widths"]["25"], plan["widths"]["200"]
+    assert all(many[name] < few[name] for name in few)
+    # 8 times the trials: 1/√trials gives 2.83 (measured median 3.7 over the 8 parameters)
+    ratio = statistics.median(few[name] / many[name] for name in few)
+    assert 2.4 < ratio < 5.0, ratio
+    # the gains are read off every action: a tenth of their prior range within 25 trials
+    assert plan["pinned"]["g_v"] == plan["pinned"]["g_w"] == 25
+    assert "pinned from" in stdout

@@ -34,7 +34,7 @@ from irc_torchrl.algorithms.calibration import (
     simulate_at_fits,
 )
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
-from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
+from irc_torchrl.algorithms.fit import FitResult, expected_intervals, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
@@ -52,6 +52,7 @@ __all__ = [
     "DEMO_OVERRIDES",
     "belief_agreement",
     "format_recovery",
+    "predicted_widths",
     "recover_firefly2d",
     "run_recovery",
 ]
@@ -168,6 +169,37 @@ def simulate_recovery_agents(
         progress=progress,
     )
     return trials, theta_true, mistaken
+
+
+def predicted_widths(
+    model: Firefly2DModel,
+    actor,
+    n_trials: tuple[int, ...] = (100,),
+    n_agents: int = 20,
+    seed: int = 0,
+) -> dict[int, dict[str, float]]:
+    """How much of θ Algorithm 2 can recover from agents acting with ``actor``, before any fit.
+
+    For each count in ``n_trials``, the median over ``n_agents`` of ``irc recover``'s agents
+    whose model is right (θ* from the prior, each in its own world, its motor noise; the first
+    trials of one simulation) of the width of each free parameter's 95% interval that the
+    Fisher information at θ* predicts (:func:`~irc_torchrl.algorithms.fit.expected_intervals`).
+    """
+    if not n_trials or min(n_trials) < 1:
+        raise ValueError(f"n_trials: expected positive trial counts, got {n_trials}")
+    config = Recovery2DConfig(
+        seed=seed, n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=max(n_trials)
+    )
+    trials, theta, _ = simulate_recovery_agents(model, actor, config)
+    action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
+    loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
+    space = model.theta_space
+    widths = {}
+    for n in n_trials:
+        intervals = expected_intervals(loss, trials[:, :n].select(*RECORDED), theta, seed=seed)
+        median = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
+        widths[n] = dict(zip(space.free_names, median.tolist(), strict=True))
+    return widths
 
 
 def belief_agreement(recovered: torch.Tensor, true: torch.Tensor, state: torch.Tensor, mask):
