@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
 from collections.abc import Sequence
@@ -312,6 +313,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_arguments(args: argparse.Namespace) -> None:
+    """Refuse a negative ``--seed`` and an ``--out`` that cannot take this command's output
+    (a file, or a folder holding another command's ``summary.json``) before any work."""
+    if getattr(args, "seed", None) is not None and args.seed < 0:
+        raise ValueError(f"--seed: expected an integer ≥ 0, got {args.seed}")
+    out = getattr(args, "out", None)
+    if out is None:
+        return
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: expected a folder, {out} is a file")
+    try:
+        written_by = json.loads((out / "summary.json").read_text()).get("command")
+    except (OSError, ValueError, AttributeError):
+        return
+    if written_by is not None and written_by != args.command:
+        raise ValueError(
+            f"--out: {out} holds the summary.json of irc {written_by}, which irc "
+            f"{args.command} would overwrite; choose another folder"
+        )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``irc`` command; a clear error on bad input exits with status 2."""
     parser = build_parser()
@@ -324,8 +347,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if extra:
         args.overrides = [*args.overrides, *extra]
     try:
+        _check_arguments(args)
         return args.run(args)
-    except (KeyError, ValueError, TypeError, FileNotFoundError, ImportError) as error:
+    except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"irc {args.command}: error: {message}", file=sys.stderr)
         return 2

@@ -94,6 +94,31 @@ class Firefly1DConfig:
     agents: AgentsConfig = field(default_factory=AgentsConfig)
     fit: FitConfig = field(default_factory=FitConfig)
 
+    def validate(self) -> Firefly1DConfig:
+        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        q, a = self.q_iteration, self.agents
+        if self.task != "firefly1d":
+            raise ValueError(f"config: task must be 'firefly1d', got {self.task!r}")
+        sizes = ("n_envs", "rounds", "steps_per_round", "sweeps", "n_belief_basis")
+        scales = ("n_theta_basis", "belief_scale", "theta_scale")
+        _positive(
+            threads=self.threads,
+            **{f"q_iteration.{name}": getattr(q, name) for name in sizes + scales},
+            **{"agents.n_agents": a.n_agents, "agents.n_trials": a.n_trials},
+            **{"agents.temperature": a.temperature, "fit.max_iter": self.fit.max_iter},
+            **{"fit.n_screen": self.fit.n_screen, "fit.n_starts": self.fit.n_starts},
+        )
+        if not 0 < q.gamma <= 1:
+            raise ValueError(f"config: q_iteration.gamma must lie in (0, 1], got {q.gamma}")
+        if not 0 <= q.epsilon <= 1:
+            raise ValueError(f"config: q_iteration.epsilon must lie in [0, 1], got {q.epsilon}")
+        if not q.ridge >= 0:
+            raise ValueError(f"config: q_iteration.ridge must be ≥ 0, got {q.ridge}")
+        if a.world not in ("known", "shared"):
+            raise ValueError(f"config: agents.world must be 'known' or 'shared', got {a.world!r}")
+        self.fit.validate()
+        return self
+
 
 @dataclass
 class SimulateConfig:
@@ -239,27 +264,46 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
         for key, sub in value.items():
             _set(current, key, sub, root, f"{prefix}{head}.")
         return
+    setattr(config, head, _cast(prefix + dotted, value, current))
+
+
+def _cast(name: str, value: Any, current: Any) -> Any:
+    """``value`` as the type of the field's ``current`` value, refusing lossy conversions
+    (``1.5`` for an integer, ``ture`` for a flag) with a one-line error naming the field."""
     kind = type(current)
-    try:
-        if kind is bool and isinstance(value, str):
-            cast = value.lower() in ("1", "true", "yes")
-        else:
-            cast = kind(value)
-    except (TypeError, ValueError):
-        name = prefix + dotted
-        raise ValueError(f"config: {name}={value!r} is not a valid {kind.__name__}") from None
-    setattr(config, head, cast)
+    if isinstance(current, list):
+        if not isinstance(value, list):
+            raise ValueError(f"config: {name}={value!r} is not a list (write it as [a, b])")
+        if not current:  # no element to take the type from
+            return value
+        return [_cast(f"{name}[{i}]", v, current[0]) for i, v in enumerate(value)]
+    if kind is bool:
+        words = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, (str, int)) and str(value).lower() in words:
+            return words[str(value).lower()]
+    elif kind is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif kind is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):  # YAML reads 1e-3 (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
+    elif isinstance(value, kind):
+        return value
+    raise ValueError(f"config: {name}={value!r} is not a valid {kind.__name__}")
 
 
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Firefly1DConfig:
     """The embedded default, updated by the YAML file at ``path`` and then by ``key=value``."""
-    config = _update(Firefly1DConfig(), path, overrides)
-    if config.agents.world not in ("known", "shared"):
-        raise ValueError(
-            f"config: agents.world must be 'known' or 'shared', got {config.agents.world!r}"
-        )
-    config.fit.validate()
-    return config
+    return _update(Firefly1DConfig(), path, overrides).validate()
 
 
 def load_firefly2d_config(
@@ -285,7 +329,7 @@ def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> A
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config: no file at {path}")
-        data = yaml.safe_load(path.read_text()) or {}
+        data = _yaml(path.read_text(), str(path)) or {}
         if not isinstance(data, dict):
             raise ValueError(
                 f"config: {path} must hold a mapping of keys, got {type(data).__name__}"
@@ -296,8 +340,30 @@ def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> A
         key, sep, value = item.partition("=")
         if not sep:
             raise ValueError(f"config: override {item!r} must look like key=value")
-        _set(config, key.strip(), yaml.safe_load(value), config)
+        _set(config, key.strip(), _yaml(value, f"override {item!r}"), config)
+    _check_seeds(config)
     return config
+
+
+def _yaml(text: str, source: str) -> Any:
+    """``text`` parsed as YAML, or a one-line error naming ``source`` and the problem."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+        mark = getattr(error, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        raise ValueError(f"config: {source} is not valid YAML: {problem}{where}") from None
+
+
+def _check_seeds(config: Any, prefix: str = "") -> None:
+    """Every ``seed`` field below ``config`` is a non-negative integer (torch's and numpy's)."""
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            _check_seeds(value, f"{prefix}{f.name}.")
+        elif f.name == "seed" and value < 0:
+            raise ValueError(f"config: {prefix}seed must be an integer ≥ 0, got {value}")
 
 
 def load_recovery2d_config(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
+import zipfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -373,6 +374,24 @@ def report_run(folder: str | Path) -> list[Path]:
         summary = json.loads(path.read_text())
     except ValueError as error:
         raise ValueError(f"report: {path} is not valid JSON ({error})") from None
+    expected = "expected the summary.json of irc fit, recover, demo or train"
+    if not isinstance(summary, dict):
+        raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {expected}")
+    beliefs = folder / "beliefs.npz"
+    if beliefs.is_file():
+        try:  # read it whole before drawing anything: a damaged archive fails here
+            with np.load(beliefs, allow_pickle=False) as archive:
+                [archive[key] for key in archive.files]
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
+            raise ValueError(f"report: {beliefs} is damaged ({error})") from None
+    try:
+        return _report(summary, folder, path)
+    except (KeyError, TypeError, AttributeError, IndexError) as error:
+        raise ValueError(f"report: {path} lacks or mangles field {error}; {expected}") from None
+
+
+def _report(summary: dict, folder: Path, path: Path) -> list[Path]:
+    """The figures of a run folder's ``summary``, written one by one."""
     written = []
     if summary.get("history"):
         losses = _logged_losses(folder / "logs")

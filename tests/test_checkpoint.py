@@ -63,6 +63,21 @@ def test_mismatched_task_and_theta_space_are_clear_errors(trained):
         train_ensemble(tiny("theta_fixed={g_v: 1.0}"), resume=out / "checkpoint.pt", progress=False)
 
 
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("ddpg.hidden=[32]", r"has ddpg.hidden=\[16, 16\], the config \[32\]"),
+        ("ddpg.loss=td3", "has ddpg.loss='ddpg', the config 'td3'"),
+        ("ddpg.activation=relu", "has ddpg.activation='softplus', the config 'relu'"),
+    ],
+)
+def test_resuming_with_other_networks_names_the_setting(tmp_path, trained, override, message):
+    _, out = trained
+    with pytest.raises(ValueError, match=f"resume: checkpoint .*{message}"):
+        train_ensemble(tiny(override), out=tmp_path, resume=out / "checkpoint.pt", progress=False)
+    assert list(tmp_path.iterdir()) == []  # refused before writing anything
+
+
 def test_missing_truncated_and_pickled_files_are_refused(tmp_path, trained):
     _, out = trained
     with pytest.raises(FileNotFoundError, match="absent.pt"):

@@ -245,6 +245,16 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["recover", "components=0"], "components: expected 1 or more than the belief's 5"),
         (["fit", "FILE", "components=0"], "components must be positive"),
         (["fit", "FILE", "components=4"], "components: expected 1 or more than the belief's 5"),
+        (["fit", "FILE", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),
+        (["simulate", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),
+        (["simulate", "n_agents=1.5"], "n_agents=1.5 is not a valid int"),
+        (["fit", "FILE", "--seed", "-1"], "--seed: expected an integer ≥ 0, got -1"),
+        (["train", "ddpg.warmup_frames=0"], "ddpg.warmup_frames must be positive"),
+        (["train", "ddpg.sigma_init=-1"], "ddpg.sigma_init must be ≥ 0"),
+        (["train", "ddpg.hidden=64,64"], "ddpg.hidden='64,64' is not a list"),
+        (["train", "evaluation.seed=-1"], "evaluation.seed must be an integer ≥ 0"),
+        (["train", "flush_denormal=ture"], "flush_denormal='ture' is not a valid bool"),
+        (["train", "n_envs=[1"], "override 'n_envs=[1' is not valid YAML"),
     ],
 )
 def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_path, capsys):
@@ -253,6 +263,60 @@ def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_
     err = capsys.readouterr().err
     assert err.startswith(f"irc {argv[0]}: error: ") and message in err
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_path, capsys):
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine")
+    fit = ["fit", str(simulated / "agent0.csv"), "--quiet", "--out"]
+    assert main([*fit, str(a_file)]) == 2
+    assert "--out: expected a folder, " in capsys.readouterr().err
+    truth = (simulated / "summary.json").read_text()
+    assert main([*fit, str(simulated)]) == 2  # would overwrite the true θ of the recordings
+    assert "holds the summary.json of irc simulate" in capsys.readouterr().err
+    assert (simulated / "summary.json").read_text() == truth
+
+
+def test_a_rerun_of_simulate_drops_the_old_summary_before_writing(tmp_path, monkeypatch):
+    out = tmp_path / "sim"
+    assert main(["simulate", "--out", str(out), "--quiet", "n_trials=2"]) == 0
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", fail)
+    assert main(["simulate", "--out", str(out), "--quiet", "n_trials=2", "--seed", "1"]) == 2
+    assert not (out / "summary.json").exists()  # no truth claimed for what is there
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda folder: (folder / "summary.json").write_text("[]"), "holds a JSON list"),
+        (
+            lambda folder: (folder / "summary.json").write_text(
+                '{"agents": [{"theta_hat": {"g_v": 1.0}}]}'
+            ),
+            "lacks or mangles field",
+        ),
+        (
+            lambda folder: (folder / "beliefs.npz").write_bytes(
+                (folder / "beliefs.npz").read_bytes()[:200]
+            ),
+            "beliefs.npz is damaged",
+        ),
+    ],
+)
+def test_report_of_a_damaged_folder_exits_2_drawing_nothing(
+    fitted, tmp_path, capsys, damage, message
+):
+    source, _ = fitted
+    for name in ("summary.json", "beliefs.npz"):
+        shutil.copy(source / name, tmp_path / name)
+    damage(tmp_path)
+    assert main(["report", str(tmp_path)]) == 2
+    assert message in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.png"))
 
 
 def _edit(text: str, line: int, column: str, value: str) -> str:

@@ -44,11 +44,33 @@ def test_overrides_reach_nested_fields_with_types():
         ("fit.curvature=newton", r"fit.curvature must be one of \('hessian', 'fisher', 'bfgs'\)"),
         ("fit.covariance=robust", r"fit.covariance must be one of \('hessian', 'sandwich'\)"),
         ("seed", "must look like key=value"),
+        ("seed=-1", "seed must be an integer ≥ 0, got -1"),
+        ("agents.n_agents=1.5", "agents.n_agents=1.5 is not a valid int"),
+        ("agents.n_trials=true", "agents.n_trials=True is not a valid int"),
+        ("flush_denormal=ture", "flush_denormal='ture' is not a valid bool"),
+        ("threads=0", "threads must be positive, got 0"),
+        ("agents.n_agents=0", "agents.n_agents must be positive, got 0"),
+        ("agents.temperature=-1", "agents.temperature must be positive, got -1.0"),
+        ("q_iteration.n_envs=-4", "q_iteration.n_envs must be positive, got -4"),
+        ("q_iteration.gamma=1.5", r"q_iteration.gamma must lie in \(0, 1\]"),
+        ("agents.n_trials=[1", "override 'agents.n_trials=\\[1' is not valid YAML"),
     ],
 )
 def test_bad_overrides_are_clear_errors(override, message):
     with pytest.raises((KeyError, ValueError), match=message):
         load_config(overrides=[override])
+
+
+def test_flags_and_numbers_take_their_usual_spellings():
+    config = load_config(overrides=["flush_denormal=no", "agents.n_agents=7.0", "fit.max_iter=9"])
+    assert (config.flush_denormal, config.agents.n_agents, config.fit.max_iter) == (False, 7, 9)
+    assert type(config.agents.n_agents) is int
+
+
+def test_a_malformed_yaml_file_names_file_and_line(tmp_path):
+    (tmp_path / "bad.yaml").write_text("agents:\n  n_agents: 3\n n_trials: 5\n")
+    with pytest.raises(ValueError, match=r"bad.yaml is not valid YAML: .*\(line 3, column 2\)"):
+        load_config(tmp_path / "bad.yaml")
 
 
 def test_missing_config_file(tmp_path):

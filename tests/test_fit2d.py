@@ -320,6 +320,14 @@ def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch
         fit_theta(loss, held, n_screen=0)
     with pytest.raises(ValueError, match="n_screen, n_starts: expected"):
         fit_theta(loss, held, n_starts=0)
+    with pytest.raises(TypeError, match="n_starts: expected an integer, got 1.5"):
+        fit_theta(loss, held, n_starts=1.5)
+    for max_iter in (0, -3, 2.5):
+        with pytest.raises(ValueError, match=f"max_iter: expected an integer ≥ 1, got {max_iter}"):
+            fit_theta(loss, held, max_iter=max_iter)
+    for tol in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="tol: expected a positive finite number"):
+            fit_theta(loss, held, tol=tol)
     with pytest.raises((KeyError, ValueError), match="g_x"):
         model.theta_space.free("g_x")
     bad = held.clone()

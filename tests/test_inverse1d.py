@@ -397,6 +397,14 @@ def test_profile_intervals_of_named_parameters_leave_the_others_wald(
         assert torch.equal(getattr(one, end)[:, others], getattr(wald.intervals, end)[:, others])
     with pytest.raises(ValueError, match=r"names: expected free parameters \["):
         profile_intervals(loss, trials, wald, names=["g_x"])
+    with pytest.raises(ValueError, match=r"trials: expected the fit's \d+ agent\(s\), got 1"):
+        profile_intervals(loss, trials[:1], wald)
+    with pytest.raises(ValueError, match="max_iter: expected an integer ≥ 1, got -1"):
+        profile_intervals(loss, trials, wald, max_iter=-1)
+    bad = trials.clone()
+    bad["state"][0, 0, 1] = float("nan")
+    with pytest.raises(ValueError, match="trials: field 'state' has NaN or inf"):
+        profile_intervals(loss, bad, wald)
 
 
 def test_a_profile_that_stays_above_the_quantile_ends_on_the_bound(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -414,3 +415,48 @@ def test_a_failing_folder_write_keeps_the_old_folder(tmp_path, model2d, trials2d
     assert [p.name for p in tmp_path.iterdir()] == ["held"]
     monkeypatch.undo()
     _assert_same(read_trials(path, model2d), trials2d)
+
+
+# --- damaged files and spreadsheet exports ---------------------------------------------------
+def test_a_truncated_memmap_file_is_refused_and_left_as_it_was(tmp_path, model2d, trials2d):
+    path = write_trials(trials2d, tmp_path / "held", model2d)
+    state = path / "state.memmap"
+    state.write_bytes(state.read_bytes()[:1000])
+    with pytest.raises(ValueError, match=r"state\.memmap: 1000 bytes; expected \d+ .*truncated"):
+        read_trials(path, model2d)
+    assert state.stat().st_size == 1000  # not grown back by opening it
+
+
+def test_a_damaged_npz_archive_is_refused(tmp_path, model2d, trials2d):
+    path = write_trials(trials2d, tmp_path / "t.npz", model2d)
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 3] ^= 0xFF  # a flipped byte inside a member: its checksum fails
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"t\.npz: a damaged NPZ archive"):
+        read_trials(path, model2d)
+
+
+def test_a_csv_with_excels_byte_order_mark_reads_as_without(tmp_path, model2d, trials2d):
+    plain = write_trials(trials2d, tmp_path / "plain.csv", model2d)
+    marked = tmp_path / "marked.csv"
+    marked.write_bytes("\ufeff".encode() + plain.read_bytes())
+    _assert_same(read_trials(marked, model2d), read_trials(plain, model2d))
+
+
+def test_complex_and_zero_dimensional_columns_are_refused(tmp_path, model2d, trials2d):
+    columns = trials_to_columns(trials2d, model2d)
+    np.savez(tmp_path / "c.npz", **{**columns, "x": columns["x"] + 1j})
+    with pytest.raises(ValueError, match=r"column 'x' holds complex\d+ values; expected numbers"):
+        read_trials(tmp_path / "c.npz", model2d)
+    np.savez(tmp_path / "s.npz", **{**columns, "trial": np.array(0)})
+    with pytest.raises(ValueError, match=r"column 'trial' has shape \[\]; expected one value"):
+        read_trials(tmp_path / "s.npz", model2d)
+
+
+def test_a_written_folder_gets_the_mode_mkdir_would_give_it(tmp_path, model2d, trials2d):
+    umask = os.umask(0o022)
+    try:
+        path = write_trials(trials2d, tmp_path / "held", model2d)
+    finally:
+        os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o755  # not mkdtemp's private 0o700

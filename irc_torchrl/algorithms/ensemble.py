@@ -193,6 +193,7 @@ class Firefly2DConfig:
             "ddpg.updates_per_batch": d.updates_per_batch,
             "ddpg.total_frames": d.total_frames,
             "ddpg.buffer_size": d.buffer_size,
+            "ddpg.warmup_frames": d.warmup_frames,
             "ddpg.batch_size": d.batch_size,
             "ddpg.anneal_frames": d.anneal_frames,
             "ddpg.collector_workers": d.collector_workers,
@@ -216,6 +217,9 @@ class Firefly2DConfig:
             "ddpg.pre_activation_weight": d.pre_activation_weight,
             "ddpg.policy_noise": d.policy_noise,
             "ddpg.noise_clip": d.noise_clip,
+            "ddpg.sigma_init": d.sigma_init,
+            "ddpg.sigma_end": d.sigma_end,
+            "ddpg.warmup_sigma": d.warmup_sigma,
         }.items():
             if not value >= 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {value}")
@@ -565,6 +569,7 @@ def _train(
     env_seed = config.seed
     if resume is not None:
         ckpt = load_checkpoint(resume, task=TASK, theta_space=model.theta_space)
+        _check_networks(ckpt, d)
         loss.load_state_dict(ckpt["loss"])
         opt_actor.load_state_dict(ckpt["optimiser_actor"])
         opt_critic.load_state_dict(ckpt["optimiser_critic"])
@@ -829,6 +834,17 @@ def _make_collector(
         collector = MultiSyncCollector(makers, policy, **common)
     collector.set_seed(seed)
     return collector
+
+
+def _check_networks(ckpt: Mapping[str, Any], d: DDPGConfig) -> None:
+    """Refuse to resume a checkpoint whose networks the config would build differently."""
+    saved = ckpt["config"].get("ddpg", {})
+    for name in ("hidden", "activation", "loss"):
+        if name in saved and saved[name] != getattr(d, name):
+            raise ValueError(
+                f"resume: checkpoint {ckpt['path']} has ddpg.{name}={saved[name]!r}, the config "
+                f"{getattr(d, name)!r}; resume with the checkpoint's settings"
+            )
 
 
 def _load(source: str | Path) -> tuple[Firefly2DConfig, Firefly2DModel, dict[str, Any]]:

@@ -15,6 +15,7 @@ The exact Hessian at θ̂, the observed Fisher information, gives the intervals 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -167,6 +168,10 @@ def fit_theta(
                 f"starts: expected one θ per agent, [{n_agents}, {space.dim}], "
                 f"got {list(starts.shape)}"
             )
+    _check_iterations(max_iter, tol)
+    for name, value in (("n_screen", n_screen), ("n_starts", n_starts)):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeError(f"{name}: expected an integer, got {value!r}")
     if n_screen < (0 if starts is not None else 1) or n_starts < 1:
         raise ValueError(
             f"n_screen, n_starts: expected n_starts ≥ 1 and n_screen ≥ 1 (≥ 0 with starts), "
@@ -410,6 +415,13 @@ def profile_intervals(
     others' remaining decrease) is ``profiled``; the others, and parameters without a Wald
     interval, keep the Wald endpoints.
     """
+    _check_iterations(max_iter, tol)
+    trials = validate_trials(trials, loss.model)
+    if trials.shape[0] != result.theta_hat.shape[0]:
+        raise ValueError(
+            f"trials: expected the fit's {result.theta_hat.shape[0]} agent(s), "
+            f"got {trials.shape[0]}"
+        )
     space = loss.theta_space
     wald = result.intervals
     names = space.free_names if names is None else list(names)
@@ -581,6 +593,14 @@ def _held_step(
     scale = inner.diagonal(dim1=1, dim2=2).abs().clamp_min(1e-6).unsqueeze(-1) * eye + eye
     step = torch.linalg.solve(inner + damping.view(-1, 1, 1) * scale, -g_free)
     return step, follow, -0.5 * (g_free * newton).sum(-1)
+
+
+def _check_iterations(max_iter: int, tol: float) -> None:
+    """An iteration limit ≥ 1 and a positive, finite tolerance, or a one-line error."""
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        raise ValueError(f"max_iter: expected an integer ≥ 1, got {max_iter!r}")
+    if not (isinstance(tol, (int, float)) and 0 < tol < math.inf):
+        raise ValueError(f"tol: expected a positive finite number, got {tol!r}")
 
 
 def _by_rows(fn: Callable, params: torch.Tensor, trials: TensorDictBase, budget: int) -> tuple:

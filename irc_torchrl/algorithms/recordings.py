@@ -86,14 +86,21 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def _theta_values(values: dict, field: str) -> dict[str, float]:
-    """``{name: float}`` from config values, refusing anything that is not a number."""
+def _theta_values(values: dict, field: str, space: ThetaSpace | None = None) -> dict[str, float]:
+    """``{name: float}`` from config values, refusing anything that is not a number and,
+    given the agents' ``space``, another value for a parameter it holds fixed."""
     out = {}
     for name, value in values.items():
         try:
             out[str(name)] = float(value)
         except (TypeError, ValueError):
             raise ValueError(f"config: {field}.{name}={value!r} is not a number") from None
+        fixed = None if space is None else space.fixed.get(str(name))
+        if fixed is not None and out[str(name)] != fixed:
+            raise ValueError(
+                f"config: {field}.{name}={value!r}, but the checkpoint's θ space holds {name} "
+                f"fixed at {fixed}"
+            )
     return out
 
 
@@ -128,7 +135,7 @@ def simulate_recordings(
         actor = actor.to(target)
         space = model.theta_space
         prior = space.sample((config.n_agents,), generator=torch.Generator().manual_seed(seed))
-        theta = space.from_dict(_theta_values(config.theta, "theta"), prior, "theta")
+        theta = space.from_dict(_theta_values(config.theta, "theta", space), prior, "theta")
         world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
         policy = motor_noise_policy(actor, model.action_spec.to(target), config.motor_noise)
         bar = tqdm(total=model.max_steps, desc="simulate", unit="step", disable=not progress)
@@ -144,6 +151,8 @@ def simulate_recordings(
         bar.close()
         simulate_s = time.perf_counter() - start
         agents = []
+        # a summary of an earlier run would claim the true θ of recordings it did not write
+        (out / "summary.json").unlink(missing_ok=True)
         for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
             name = f"agent{i}{FORMATS[file_format]}"
             write_trials(trials[i].select(*TRIAL_KEYS), out / name, model)
@@ -176,7 +185,7 @@ def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> The
 
     The others are held at ``fixed[name]`` where given, else at their default.
     """
-    values = _theta_values(fixed, "theta")
+    values = _theta_values(fixed, "theta", space)
     for name in values:
         space[name]  # unknown names: a KeyError listing the valid ones
     names = [n for n in space.free_names if n not in values] if free is None else list(free)

@@ -54,7 +54,7 @@ def motor_noise_policy(
     action (e.g. ``[n_agents, 1, da]`` for :func:`simulate_agents`: each agent's fitted noise).
     """
     # on the CPU, as TorchRL's module draws its noise there before moving it to the action
-    std = torch.as_tensor(motor_noise, dtype=torch.float32).cpu()
+    std = torch.as_tensor(motor_noise, dtype=torch.float32, device="cpu")
     if not (torch.isfinite(std).all() and (std > 0).all()):
         raise ValueError(f"motor_noise: expected positive standard deviations, got {motor_noise}")
     noise = AdditiveGaussianModule(spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1)
@@ -100,6 +100,7 @@ def simulate_agents(
             batch_size=batch,
             theta=theta.unsqueeze(1).expand(*batch, -1),
             task_theta=world,
+            device=theta.device,
             seed=seed,
         ),
         EKFBelief(model),

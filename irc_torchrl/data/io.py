@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import csv
 import importlib
+import json
+import math
 import warnings
 import zipfile
 from collections.abc import Callable, Mapping
@@ -168,15 +170,18 @@ def _read_npz(path: Path, model: TaskModel, time_column: str, trial_column: str)
     if not zipfile.is_zipfile(path):
         raise ValueError(f"{path}: not an NPZ archive; expected a file written by np.savez")
     columns = {}
-    with np.load(path, allow_pickle=False) as archive:
-        for name in archive.files:
-            try:
-                columns[name] = archive[name]
-            except ValueError:  # an object array, refused without unpickling
-                raise ValueError(
-                    f"{path}: column {name!r} holds Python objects; expected numeric arrays, "
-                    "one per column (object arrays are never unpickled)"
-                ) from None
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            for name in archive.files:
+                try:
+                    columns[name] = archive[name]
+                except ValueError:  # an object array, refused without unpickling
+                    raise ValueError(
+                        f"{path}: column {name!r} holds Python objects; expected numeric "
+                        "arrays, one per column (object arrays are never unpickled)"
+                    ) from None
+    except (zipfile.BadZipFile, EOFError, OSError) as err:
+        raise ValueError(f"{path}: a damaged NPZ archive ({err}); write it again") from None
     return columns
 
 
@@ -187,7 +192,7 @@ def _write_npz(columns: Columns, tmp: Path, model: TaskModel) -> None:
 
 def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: Excel's byte-order mark
             rows = [row for row in csv.reader(f) if row]
     except (UnicodeDecodeError, csv.Error) as err:
         raise ValueError(
@@ -229,6 +234,7 @@ def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
 
 
 def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+    _check_memmap_sizes(path)
     try:
         trials = TensorDict.load_memmap(path)
     except (FileNotFoundError, KeyError, ValueError, RuntimeError) as err:
@@ -240,6 +246,28 @@ def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: s
     if missing:
         raise KeyError(f"{path}: missing field(s) {missing}; held trials need {list(TRIAL_KEYS)}")
     return trials_to_columns(trials.reshape(-1, trials.shape[-1]), model, time_column, trial_column)
+
+
+def _check_memmap_sizes(path: Path) -> None:
+    """Refuse a memmap folder whose files are not the size ``meta.json`` gives them: a
+    truncated file would read as zeros (and be grown back on opening)."""
+    try:
+        meta = json.loads((path / "meta.json").read_text())
+    except (OSError, ValueError):
+        return  # TensorDict.load_memmap says what is wrong with it
+    for key, leaf in meta.items() if isinstance(meta, dict) else ():
+        file = path / f"{key}.memmap"
+        if not (isinstance(leaf, dict) and file.is_file()):
+            continue
+        dtype = getattr(torch, str(leaf.get("dtype", "")).removeprefix("torch."), None)
+        if not isinstance(dtype, torch.dtype) or not isinstance(leaf.get("shape"), list):
+            continue
+        expected = math.prod(leaf["shape"]) * dtype.itemsize
+        if file.stat().st_size != expected:
+            raise ValueError(
+                f"{file}: {file.stat().st_size} bytes; expected {expected} ({key} of shape "
+                f"{leaf['shape']}, {dtype}, per meta.json): truncated or overwritten"
+            )
 
 
 def nwb_module():

@@ -79,7 +79,7 @@ def check_columns(
                 f"{source}: column {name!r} names no θ parameter{hint} "
                 f"expected {THETA_PREFIX}<name> with name in {model.theta_space.names}"
             )
-    n_rows = len(columns[trial_column])
+    n_rows = np.asarray(columns[trial_column]).reshape(-1).shape[0]
     for name in [*required, *(n for n in columns if n.startswith(THETA_PREFIX))]:
         value = np.asarray(columns[name])
         if value.ndim != 1:
@@ -92,7 +92,8 @@ def check_columns(
                 f"{source}: column {name!r} has {len(value)} values but column "
                 f"{trial_column!r} has {n_rows}; expected one value per time step in every column"
             )
-        if not (np.issubdtype(value.dtype, np.number) or value.dtype == np.bool_):
+        real = np.issubdtype(value.dtype, np.number) and not np.iscomplexobj(value)
+        if not (real or value.dtype == np.bool_):
             raise ValueError(
                 f"{source}: column {name!r} holds {value.dtype} values; expected numbers"
             )

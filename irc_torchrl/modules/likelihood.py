@@ -39,7 +39,9 @@ def gaussian_log_prob_of_draw(
     Its gradient is ``(∂mean)ᵀ ε/σ + (∂var)ᵀ (ε² − 1)/(2 var)`` with ``ε ~ N(0, 1)``: a score
     whose expected outer product is the Gaussian's Fisher information.
     """
-    noise = torch.randn(mean.shape, dtype=mean.dtype, generator=generator).to(mean.device)
+    noise = torch.randn(
+        mean.shape, dtype=mean.dtype, generator=generator, device=generator.device
+    ).to(mean.device)
     draw = (mean + var.sqrt() * noise).detach()
     logp = -0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)
     return _scored_sum(logp, scored)

@@ -329,8 +329,11 @@ class InverseRationalLoss(LossModule):
             return torch.where(valid, logp, torch.zeros_like(logp)).sum(2)
 
         if generator is None:
-            return log_prob(nxt), torch.zeros(valid.shape[:2], dtype=state.dtype)
-        noise = torch.randn(nxt.shape, dtype=nxt.dtype, generator=generator).to(nxt.device)
+            return log_prob(nxt), state.new_zeros(valid.shape[:2])
+        noise = torch.randn(
+            nxt.shape, dtype=nxt.dtype, generator=generator, device=generator.device
+        )
+        noise = noise.to(nxt.device)
         drawn = (mean + (chol @ noise.unsqueeze(-1)).squeeze(-1)).detach()
         return log_prob(nxt), log_prob(drawn)
 

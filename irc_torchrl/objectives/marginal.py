@@ -208,7 +208,8 @@ def _outer_pass(
     generator, beliefs = recorded.generator, recorded.beliefs
     n_rows, m = mean.shape[:2]
     steps, ds = state.shape[1], state.shape[2]
-    running = [int(n) for n in (count.unsqueeze(-1) > torch.arange(int(count.max()))).sum(0)]
+    step_index = torch.arange(int(count.max()), device=count.device)
+    running = [int(n) for n in (count.unsqueeze(-1) > step_index).sum(0)]
     log_weight = torch.full((n_rows, m), -math.log(m), dtype=mean.dtype, device=mean.device)
 
     def components(x: torch.Tensor) -> torch.Tensor:
@@ -378,7 +379,8 @@ def _particle_chunk(
         if t + 1 == steps or not mask[:, t + 1].any():
             break
         # systematic resampling: one uniform per trial
-        u = torch.rand(b, 1, dtype=dtype, generator=generator).to(device)
+        u = torch.rand(b, 1, dtype=dtype, generator=generator, device=generator.device)
+        u = u.to(device)
         grid = (u + torch.arange(n, dtype=dtype, device=device)) / n
         pick = torch.searchsorted(weight.cumsum(-1), grid).clamp_max(n - 1)
         pick = (pick + offset).reshape(-1)
@@ -390,7 +392,9 @@ def _particle_chunk(
         observation = None
         if model.observation_dim:
             root = torch.linalg.cholesky(model.observation_cov(nxt, world_p))
-            noise = torch.randn(b * n, root.shape[-1], 1, dtype=dtype, generator=generator)
+            noise = torch.randn(
+                b * n, root.shape[-1], 1, dtype=dtype, generator=generator, device=generator.device
+            )
             observation = model.observe(nxt, theta_p) + (root @ noise.to(device)).squeeze(-1)
         moved = ekf_step(model, mean, cov, a_t, observation, theta_p)
         mean = torch.where(keep, moved[0], mean)

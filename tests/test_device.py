@@ -1,0 +1,56 @@
+"""Tensors follow their inputs' device, checked without a GPU.
+
+Under ``torch.device("meta")`` as the default device, any tensor created without an explicit
+device is a meta tensor (no data): mixing one with the CPU inputs fails, or the result
+differs. On a GPU the same omission mixes CPU and CUDA tensors (e.g. the outer filter's step
+index, fixed here, failed every marginal evaluation on CUDA).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from irc_torchrl.algorithms.ensemble import load_ensemble_policy
+from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.modules.actor_critic import censored_action_model
+from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+
+@pytest.fixture(scope="module")
+def setting():
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    space = model.theta_space
+    theta = space.sample((2,), generator=torch.Generator().manual_seed(0))
+    policy = motor_noise_policy(actor, model.action_spec, 0.1)
+    return model, censored_action_model(actor, model, "float32"), policy, theta, space.default()
+
+
+def test_simulation_creates_nothing_on_the_default_device(setting):
+    model, _, policy, theta, world = setting
+    expected = simulate_agents(model, policy, theta, 3, world, seed=1)
+    with torch.device("meta"):
+        trials = simulate_agents(model, policy, theta, 3, world, seed=1)
+    assert trials["state"].device.type == "cpu"
+    assert torch.equal(trials["state"], expected["state"])
+    assert torch.equal(trials["action"], expected["action"])
+
+
+@pytest.mark.parametrize("method", ["marginal", "map"])
+@pytest.mark.parametrize("world", ["known", "shared"])
+def test_likelihood_and_its_draws_create_nothing_on_the_default_device(setting, method, world):
+    model, action_model, policy, theta, task_theta = setting
+    trials = simulate_agents(model, policy, theta, 3, task_theta, seed=1)
+    held = trials.select("state", "action", "target", "mask", "task_theta")
+    loss = InverseRationalLoss(model, action_model, n_agents=2, method=method, world=world)
+    nuisance = action_model.nuisance_init.double().expand(2, -1)
+    expected = loss.log_likelihood_and_draws(
+        theta.double(), nuisance, held, torch.Generator().manual_seed(0)
+    )
+    with torch.device("meta"):
+        got = loss.log_likelihood_and_draws(
+            theta.double(), nuisance, held, torch.Generator(device="cpu").manual_seed(0)
+        )
+    for a, b in zip(got, expected, strict=True):
+        assert a.device.type == "cpu"
+        torch.testing.assert_close(a, b)
