@@ -384,7 +384,8 @@ def expected_intervals(
     generator = torch.Generator().manual_seed(seed)
 
     def sampled(p: torch.Tensor, data: TensorDictBase) -> tuple[torch.Tensor]:
-        return (_fisher_scoring(loss, k, p, data, generator)[2],)
+        drawn = _trial_scores(loss, k, p, data, generator, data=False)[2]
+        return (drawn.mT @ drawn,)
 
     information = torch.stack(
         [_by_rows(sampled, params, trials, GRAD_TRIALS)[0] for _ in range(draws)]
@@ -714,9 +715,11 @@ def _trial_scores(
     params: torch.Tensor,
     trials: TensorDictBase,
     generator: torch.Generator | None = None,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """Per-trial log-likelihood ``[n, N]``, scores of the data ``[n, N, p]`` and, with
-    ``generator``, scores of data drawn from the model along the same filter (else ``None``).
+    data: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """Per-trial log-likelihood ``[n, N]``, scores of the data ``[n, N, p]`` (``None`` without
+    ``data``: one backward pass fewer) and, with ``generator``, scores of data drawn from the
+    model along the same filter (else ``None``).
 
     Each trial gets its own copy of the row's parameters, so one backward pass gives every
     trial's score.
@@ -729,6 +732,9 @@ def _trial_scores(
         if drawn is None:
             (score,) = torch.autograd.grad(ll.sum(), per_trial)
             return ll.detach(), score, None
+        if not data:
+            (score,) = torch.autograd.grad(drawn.sum(), per_trial)
+            return ll.detach(), None, score
         both = torch.stack([ll.sum(), drawn.sum()])
         eye = torch.eye(2, dtype=both.dtype, device=both.device)
         (scores,) = torch.autograd.grad(both, per_trial, eye, is_grads_batched=True)
