@@ -374,24 +374,29 @@ def report_run(folder: str | Path) -> list[Path]:
         summary = json.loads(path.read_text())
     except ValueError as error:
         raise ValueError(f"report: {path} is not valid JSON ({error})") from None
-    expected = "expected the summary.json of irc fit, recover, demo or train"
     if not isinstance(summary, dict):
-        raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {expected}")
-    beliefs = folder / "beliefs.npz"
-    if beliefs.is_file():
+        raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
+    beliefs, archive_path = None, folder / "beliefs.npz"
+    if archive_path.is_file():
         try:  # read it whole before drawing anything: a damaged archive fails here
-            with np.load(beliefs, allow_pickle=False) as archive:
-                [archive[key] for key in archive.files]
+            with np.load(archive_path, allow_pickle=False) as archive:
+                beliefs = {key: archive[key] for key in archive.files}
         except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
-            raise ValueError(f"report: {beliefs} is damaged ({error})") from None
+            raise ValueError(f"report: {archive_path} is damaged ({error})") from None
     try:
-        return _report(summary, folder, path)
+        return _report(summary, beliefs, folder, path)
     except (KeyError, TypeError, AttributeError, IndexError) as error:
-        raise ValueError(f"report: {path} lacks or mangles field {error}; {expected}") from None
+        raise ValueError(f"report: {path} lacks or mangles field {error}; {_EXPECTED}") from None
 
 
-def _report(summary: dict, folder: Path, path: Path) -> list[Path]:
-    """The figures of a run folder's ``summary``, written one by one."""
+#: what ``irc report`` reads, for its errors
+_EXPECTED = "expected the summary.json of irc fit, recover, demo or train"
+
+
+def _report(
+    summary: dict, beliefs: Mapping[str, np.ndarray] | None, folder: Path, path: Path
+) -> list[Path]:
+    """The figures of a run folder's ``summary`` (and its ``beliefs.npz`` arrays), one by one."""
     written = []
     if summary.get("history"):
         losses = _logged_losses(folder / "logs")
@@ -404,15 +409,13 @@ def _report(summary: dict, folder: Path, path: Path) -> list[Path]:
         if part.get("agents"):
             part = {"free": summary.get("free"), **part}
             written.append(_agent_figures(part, folder / f"_{method}.png", units))
-    beliefs = folder / "beliefs.npz"
-    if beliefs.is_file() and "state_names" in summary:
+    if beliefs is not None and "state_names" in summary:
         written += _belief_figures(summary, beliefs, folder)
     if written and summary.get("task") == "firefly2d":
         written += _q_figure(summary, folder)
     if not written:
         raise ValueError(
-            f"report: {path} holds neither fitted agents nor a training history; expected "
-            "the summary.json of irc fit, recover, demo or train"
+            f"report: {path} holds neither fitted agents nor a training history; {_EXPECTED}"
         )
     return written
 
@@ -435,29 +438,30 @@ def _q_figure(summary: Mapping, folder: Path) -> list[Path]:
     return [plot_q_function_2d(slices, folder / "q_function.png")]
 
 
-def _belief_figures(summary: Mapping, beliefs: Path, folder: Path) -> list[Path]:
-    """The two belief figures of each fitted recording, from ``beliefs.npz``."""
+def _belief_figures(
+    summary: Mapping, beliefs: Mapping[str, np.ndarray], folder: Path
+) -> list[Path]:
+    """The two belief figures of each fitted recording, from ``beliefs.npz``'s arrays."""
     written = []
     distance = summary["state_units"][0]
-    with np.load(beliefs, allow_pickle=False) as archive:
-        for agent in summary["agents"]:
-            label = agent["label"]
-            arrays = {
-                key.split("/", 1)[1]: archive[key]
-                for key in archive.files
-                if key.split("/", 1)[0] == label
-            }
-            title = f"{label}: beliefs under θ̂ ({summary.get('method', '')})"
-            written.append(
-                plot_belief_overhead(
-                    arrays, folder / f"{label}_beliefs_overhead.png",
-                    agent["theta_hat"].get("goal_radius"), distance_unit=distance, title=title,
-                )
-            )  # fmt: skip
-            written.append(
-                plot_belief_time(
-                    arrays, summary["state_names"], summary["state_units"],
-                    folder / f"{label}_beliefs_time.png", title=title,
-                )
-            )  # fmt: skip
+    for agent in summary["agents"]:
+        label = agent["label"]
+        arrays = {
+            key.split("/", 1)[1]: value
+            for key, value in beliefs.items()
+            if key.split("/", 1)[0] == label
+        }
+        title = f"{label}: beliefs under θ̂ ({summary.get('method', '')})"
+        written.append(
+            plot_belief_overhead(
+                arrays, folder / f"{label}_beliefs_overhead.png",
+                agent["theta_hat"].get("goal_radius"), distance_unit=distance, title=title,
+            )
+        )  # fmt: skip
+        written.append(
+            plot_belief_time(
+                arrays, summary["state_names"], summary["state_units"],
+                folder / f"{label}_beliefs_time.png", title=title,
+            )
+        )  # fmt: skip
     return written

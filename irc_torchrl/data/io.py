@@ -262,10 +262,10 @@ def _check_memmap_sizes(path: Path) -> None:
         dtype = getattr(torch, str(leaf.get("dtype", "")).removeprefix("torch."), None)
         if not isinstance(dtype, torch.dtype) or not isinstance(leaf.get("shape"), list):
             continue
-        expected = math.prod(leaf["shape"]) * dtype.itemsize
-        if file.stat().st_size != expected:
+        expected, size = math.prod(leaf["shape"]) * dtype.itemsize, file.stat().st_size
+        if size != expected:
             raise ValueError(
-                f"{file}: {file.stat().st_size} bytes; expected {expected} ({key} of shape "
+                f"{file}: {size} bytes; expected {expected} ({key} of shape "
                 f"{leaf['shape']}, {dtype}, per meta.json): truncated or overwritten"
             )
 
