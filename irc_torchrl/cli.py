@@ -35,7 +35,8 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _recover(args: argparse.Namespace) -> int:
-    overrides = [*args.overrides, f"seed={args.seed}"] if args.seed is not None else args.overrides
+    given = {"seed": args.seed, "device": args.device}
+    overrides = [*args.overrides, *(f"{k}={v}" for k, v in given.items() if v is not None)]
     return _run_recovery(args.config, overrides, args)
 
 
@@ -304,6 +305,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default="runs/recover", help="output folder (default runs/recover)"
     )
     recover.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    recover.add_argument(
+        "--device",
+        default=None,
+        help="torch device to simulate and fit on, e.g. cuda:0 (default: the config's, cpu)",
+    )
     recover.add_argument("--quiet", action="store_true", help="no progress bars")
     recover.add_argument(
         "overrides", nargs="*", metavar="key=value", help="config overrides, e.g. n_trials=50"

@@ -105,19 +105,20 @@ class ThetaSpace:
 
     @property
     def free_mask(self) -> torch.Tensor:
-        return torch.tensor([n not in self.fixed for n in self.names])
+        """Which parameters are free, ``[d]`` bool on the CPU (callers move it to their data)."""
+        return torch.tensor([n not in self.fixed for n in self.names], device="cpu")
 
     def index(self, name: str) -> int:
         self[name]
         return self._index[name]
 
-    def low(self, dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:
+    def low(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
         return torch.tensor([p.low for p in self.parameters], dtype=dtype, device=device)
 
-    def high(self, dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:
+    def high(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
         return torch.tensor([p.high for p in self.parameters], dtype=dtype, device=device)
 
-    def default(self, dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:
+    def default(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
         """θ at every parameter's default, fixed parameters at their fixed values."""
         values = [self.fixed.get(p.name, p.default) for p in self.parameters]
         return torch.tensor(values, dtype=dtype, device=device)
@@ -200,8 +201,9 @@ class ThetaSpace:
         dtype: torch.dtype = torch.float32,
         device=None,
     ) -> torch.Tensor:
-        """Draw θ from the uniform prior; fixed parameters take their fixed values."""
-        device = device if device is not None else (generator.device if generator else None)
+        """Draw θ from the uniform prior; fixed parameters take their fixed values (on
+        ``device``, else the generator's, else the CPU)."""
+        device = device if device is not None else (generator.device if generator else "cpu")
         u = torch.rand(*shape, self.dim, generator=generator, dtype=dtype, device=device)
         theta = self.low(dtype, device) + u * (self.high(dtype, device) - self.low(dtype, device))
         mask = self.free_mask.to(device)

@@ -232,6 +232,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["simulate", "--device", "nonsense"], "device:"),
         (["fit", "FILE", "--device", "meta"], "device: 'meta' tensors hold no values"),
         (["simulate", "--device", "cuda"], "device: 'cuda' requested but"),
+        (["recover", "--device", "cuda:0"], "device: 'cuda:0' requested but"),
+        (["demo", "--task", "firefly2d", "device=meta"], "device: 'meta' tensors hold no values"),
         (["fit", "FILE", "max_iters=3"], "unknown key 'max_iters'; valid keys: n_screen"),
         (["fit", "FILE", "--free", "g_v,g_x"], "unknown θ parameter 'g_x'"),
         (["fit", "FILE", "--free", "sigma_pos"], "'sigma_pos' is fixed"),

@@ -860,14 +860,16 @@ def _load(source: str | Path) -> tuple[Firefly2DConfig, Firefly2DModel, dict[str
 
 
 def load_ensemble_policy(
-    source: str | Path = TASK,
+    source: str | Path = TASK, device: torch.device | str = "cpu"
 ) -> tuple[TensorDictSequential, Firefly2DModel, dict[str, Any]]:
     """The kept (best-by-evaluation) policy of a checkpoint: ``(actor, model, checkpoint)``.
 
-    ``source`` is a path or the name of a packaged checkpoint (default: the shipped one).
+    ``source`` is a path or the name of a packaged checkpoint (default: the shipped one); the
+    actor is built on ``device`` (whatever torch's default device is).
     """
-    config, model, ckpt = _load(source)
-    actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
+    with torch.device(device):
+        config, model, ckpt = _load(source)
+        actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
     actor.load_state_dict(ckpt["best_actor"])
     return actor.requires_grad_(False), model, ckpt
 

@@ -777,8 +777,9 @@ def _screen_starts(
     low, high = space.low(torch.float64)[free], space.high(torch.float64)[free]
     draws = space.default(torch.float64).expand(n_screen, -1).clone()
     if n_screen:
-        sobol = torch.quasirandom.SobolEngine(int(free.sum()), scramble=True, seed=seed)
-        draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
+        with torch.device("cpu"):  # the engine keeps its state on the default device
+            sobol = torch.quasirandom.SobolEngine(int(free.sum()), scramble=True, seed=seed)
+            draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
         draws[0] = space.default(torch.float64)
     candidates = space.to_unconstrained(draws)[:, free].to(device).expand(n_agents, -1, -1)
     if starts is not None:

@@ -36,7 +36,7 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
-from irc_torchrl.algorithms.runtime import torch_settings
+from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import atomic_path, write_json
@@ -56,7 +56,6 @@ __all__ = [
     "fit_recordings",
     "fit_space",
     "format_fit",
-    "resolve_device",
     "simulate_recordings",
 ]
 
@@ -64,26 +63,6 @@ __all__ = [
 FORMATS = {"csv": ".csv", "npz": ".npz", "nwb": ".nwb", "memmap": ""}
 #: what ``--method`` accepts: one estimator, or both (marginal reported, map kept beside it)
 FIT_METHODS = (*METHODS, "both")
-
-
-def resolve_device(name: str) -> torch.device:
-    """The torch device called ``name``, refused early when this machine has none of it."""
-    try:
-        device = torch.device(name)
-    except RuntimeError as error:
-        raise ValueError(f"device: {error}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device: {name!r} requested but torch.cuda.is_available() is False")
-    if device.type == "meta":
-        raise ValueError("device: 'meta' tensors hold no values; expected 'cpu' or 'cuda'")
-    try:
-        torch.zeros(1, device=device)
-    except (RuntimeError, AssertionError):  # a backend this torch build or machine lacks
-        raise ValueError(
-            f"device: {name!r} is not usable here (no working {device.type!r} backend in this "
-            "torch); expected 'cpu' or an available accelerator"
-        ) from None
-    return device
 
 
 def _theta_values(values: dict, field: str, space: ThetaSpace | None = None) -> dict[str, float]:

@@ -36,7 +36,7 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, expected_intervals, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
-from irc_torchrl.algorithms.runtime import torch_settings
+from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import FitConfig, _one_of, config_to_dict
 from irc_torchrl.data.files import atomic_dir, write_json, write_text
@@ -69,6 +69,9 @@ class Recovery2DConfig:
     seed: int = 0
     #: torch threads
     threads: int = 2
+    #: where simulation and fits run, e.g. "cpu" or "cuda:0" (trials and figures come back
+    #: to the CPU)
+    device: str = "cpu"
     #: a checkpoint path or the name of a packaged one
     checkpoint: str = "firefly2d"
     n_prior_agents: int = 30
@@ -128,6 +131,7 @@ class Recovery2DConfig:
             raise ValueError(f"config: motor_noise must be > 0, got {self.motor_noise}")
         self.fit.validate()
         _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
+        resolve_device(self.device)
         _one_of("calibration_tail", self.calibration_tail, TAILS)
         unknown = [m for m in self.method_list if m not in METHODS]
         if unknown or not self.method_list:
@@ -149,16 +153,18 @@ def simulate_recovery_agents(
     config: Recovery2DConfig,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
-    """Draw θ* and simulate both groups: ``(trials, theta_true, mistaken)``.
+    """Draw θ* and simulate both groups: ``(trials, theta_true, mistaken)``, on the
+    actor's device.
 
     ``mistaken`` ``[A]`` is True for agents living in the task's default world.
     """
-    space = model.theta_space
+    space, device = model.theta_space, next(actor.parameters()).device
     n = config.n_prior_agents + config.n_mistaken_agents
     theta_true = space.sample((n,), generator=torch.Generator().manual_seed(config.seed))
-    mistaken = torch.arange(n) >= config.n_prior_agents
-    world = torch.where(mistaken.unsqueeze(-1), space.default().expand(n, -1), theta_true)
-    policy = motor_noise_policy(actor, model.action_spec, config.motor_noise)
+    theta_true = theta_true.to(device)
+    mistaken = torch.arange(n, device=device) >= config.n_prior_agents
+    world = torch.where(mistaken.unsqueeze(-1), space.default(device=device), theta_true)
+    policy = motor_noise_policy(actor, model.action_spec.to(device), config.motor_noise)
     trials = simulate_agents(
         model,
         policy,
@@ -229,7 +235,7 @@ def recover_firefly2d(
     the recovered belief under ``(method, "belief")``.
     """
     config.validate()
-    actor, model, _ = load_ensemble_policy(config.checkpoint)
+    actor, model, _ = load_ensemble_policy(config.checkpoint, resolve_device(config.device))
     space = model.theta_space
     start = time.perf_counter()
     trials, theta_true, mistaken = simulate_recovery_agents(
@@ -355,7 +361,8 @@ def _calibrate(
     def refit(i: int) -> dict[str, FitResult]:
         synthetic = simulate_at_fits(
             model, actor, result, world, config.n_trials, seed=config.seed + 1000 + i
-        ).select(*RECORDED)
+        )
+        synthetic = synthetic.select(*RECORDED).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"
         fitted = _fit_methods(config, model, action_model, synthetic, progress, label)
         return {method: fit.result for method, fit in fitted.items()}
@@ -422,6 +429,7 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
             bars[method].update(1)
 
         trials, summary, _ = recover_firefly2d(config, progress)
+        trials = trials.cpu()
         for bar in bars.values():
             bar.close()
     write_json(out / "summary.json", summary)

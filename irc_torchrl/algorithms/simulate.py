@@ -57,7 +57,9 @@ def motor_noise_policy(
     std = torch.as_tensor(motor_noise, dtype=torch.float32, device="cpu")
     if not (torch.isfinite(std).all() and (std > 0).all()):
         raise ValueError(f"motor_noise: expected positive standard deviations, got {motor_noise}")
-    noise = AdditiveGaussianModule(spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1)
+    noise = AdditiveGaussianModule(
+        spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1, device="cpu"
+    )
     noise.std = std  # the module's noise scale, per action where it is a tensor
     return TensorDictSequential(actor, noise)
 

@@ -110,8 +110,8 @@ class FeaturePolicy(nn.Module):
         self.mlp = net.module
         self.dtype = dtype
         bounds = squash.spec[squash.out_keys[0]].space
-        self.register_buffer("low", torch.as_tensor(bounds.low, dtype=torch.float32))
-        self.register_buffer("high", torch.as_tensor(bounds.high, dtype=torch.float32))
+        self.register_buffer("low", bounds.low.to(torch.float32))
+        self.register_buffer("high", bounds.high.to(torch.float32))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         dtype, inner = features.dtype, self.dtype or features.dtype

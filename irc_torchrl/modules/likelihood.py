@@ -61,7 +61,7 @@ class BoltzmannActionModel(nn.Module):
     def __init__(self, q_network: nn.Module, temperature: float = 0.5) -> None:
         super().__init__()
         self.q_network = q_network.requires_grad_(False)
-        self.nuisance_init = torch.tensor([math.log(temperature)])
+        self.nuisance_init = torch.tensor([math.log(temperature)], device="cpu")
 
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
         """Action logits ``Q / τ``, ``[*B, n_actions]``; ``nuisance`` broadcasts against ``*B``."""
@@ -133,12 +133,12 @@ class CensoredGaussianActionModel(nn.Module):
             raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
         self.lapse = lapse
         self.actor = actor.requires_grad_(False)
-        self.register_buffer("low", torch.as_tensor(low, dtype=torch.float64))
-        self.register_buffer("high", torch.as_tensor(high, dtype=torch.float64))
+        self.register_buffer("low", low.to(torch.float64))
+        self.register_buffer("high", high.to(torch.float64))
         self.atol = atol
         da = self.low.numel()
         self.nuisance_names = tuple(f"log_motor_noise_{i}" for i in range(da))
-        self.nuisance_init = torch.full((da,), math.log(motor_noise))
+        self.nuisance_init = torch.full((da,), math.log(motor_noise), device="cpu")
 
     def log_prob(
         self,
