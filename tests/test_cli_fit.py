@@ -253,6 +253,7 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "--seed", "-1"], "--seed: expected an integer ≥ 0, got -1"),
         (["train", "ddpg.warmup_frames=0"], "ddpg.warmup_frames must be positive"),
         (["train", "ddpg.sigma_init=-1"], "ddpg.sigma_init must be ≥ 0"),
+        (["train", "ddpg.buffer_size=100"], "ddpg.buffer_size=100 must hold a batch"),
         (["train", "ddpg.hidden=64,64"], "ddpg.hidden='64,64' is not a list"),
         (["train", "evaluation.seed=-1"], "evaluation.seed must be an integer ≥ 0"),
         (["train", "flush_denormal=ture"], "flush_denormal='ture' is not a valid bool"),

@@ -226,6 +226,11 @@ class Firefly2DConfig:
         for name, value in {"ddpg.gamma": d.gamma, "ddpg.tau": d.tau}.items():
             if not 0 < value <= 1:
                 raise ValueError(f"config: {name} must lie in (0, 1], got {value}")
+        if d.buffer_size < d.batch_size:
+            raise ValueError(
+                f"config: ddpg.buffer_size={d.buffer_size} must hold a batch, "
+                f"ddpg.batch_size={d.batch_size}"
+            )
         if d.n_envs % d.collector_workers:
             raise ValueError(
                 f"config: ddpg.n_envs={d.n_envs} must be a multiple of "

@@ -269,6 +269,7 @@ def fit_recordings(
     out = Path(out)
     with torch_settings(config.threads, True):
         actor, model, ckpt = load_ensemble_policy(checkpoint)
+        actor = actor.to(target)  # whole: calibration's simulations run it as a policy
         space = fit_space(model.theta_space, free, config.theta)
         start = time.perf_counter()
         units = {str(k): str(v) for k, v in config.units.items()}
