@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 import warnings
 import zipfile
 from collections.abc import Mapping, Sequence
@@ -383,10 +385,17 @@ def report_run(folder: str | Path) -> list[Path]:
                 beliefs = {key: archive[key] for key in archive.files}
         except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
             raise ValueError(f"report: {archive_path} is damaged ({error})") from None
-    try:
-        return _report(summary, beliefs, folder, path)
-    except (KeyError, TypeError, AttributeError, IndexError) as error:
-        raise ValueError(f"report: {path} lacks or mangles field {error}; {_EXPECTED}") from None
+    # every figure is drawn aside first, so a field found lacking half-way leaves none behind
+    with tempfile.TemporaryDirectory(dir=folder, prefix=".report.") as scratch:
+        try:
+            drawn = _report(summary, beliefs, folder, path, Path(scratch))
+        except (KeyError, TypeError, AttributeError, IndexError) as error:
+            raise ValueError(
+                f"report: {path} lacks or mangles field {error}; {_EXPECTED}"
+            ) from None
+        for figure in drawn:
+            os.replace(figure, folder / figure.name)
+    return [folder / figure.name for figure in drawn]
 
 
 #: what ``irc report`` reads, for its errors
@@ -394,25 +403,30 @@ _EXPECTED = "expected the summary.json of irc fit, recover, demo or train"
 
 
 def _report(
-    summary: dict, beliefs: Mapping[str, np.ndarray] | None, folder: Path, path: Path
+    summary: dict,
+    beliefs: Mapping[str, np.ndarray] | None,
+    folder: Path,
+    path: Path,
+    out: Path,
 ) -> list[Path]:
-    """The figures of a run folder's ``summary`` (and its ``beliefs.npz`` arrays), one by one."""
+    """The figures of a run folder's ``summary`` (and its ``beliefs.npz`` arrays), one by one,
+    into ``out``."""
     written = []
     if summary.get("history"):
         losses = _logged_losses(folder / "logs")
-        written.append(plot_training(summary["history"], losses, folder / "training.png"))
+        written.append(plot_training(summary["history"], losses, out / "training.png"))
     units = summary.get("units") or _task_units(summary.get("task"))
     # with per-method results, the top-level agents repeat one of them
     if summary.get("agents") and "theta_hat" in summary["agents"][0] and not summary.get("methods"):
-        written.append(_agent_figures(summary, folder / ".png", units))
+        written.append(_agent_figures(summary, out / ".png", units))
     for method, part in summary.get("methods", {}).items():
         if part.get("agents"):
             part = {"free": summary.get("free"), **part}
-            written.append(_agent_figures(part, folder / f"_{method}.png", units))
+            written.append(_agent_figures(part, out / f"_{method}.png", units))
     if beliefs is not None and "state_names" in summary:
-        written += _belief_figures(summary, beliefs, folder)
+        written += _belief_figures(summary, beliefs, out)
     if written and summary.get("task") == "firefly2d":
-        written += _q_figure(summary, folder)
+        written += _q_figure(summary, folder, out)
     if not written:
         raise ValueError(
             f"report: {path} holds neither fitted agents nor a training history; {_EXPECTED}"
@@ -420,8 +434,9 @@ def _report(
     return written
 
 
-def _q_figure(summary: Mapping, folder: Path) -> list[Path]:
-    """Fig. 1B of a 2D run at the default θ, from the run's own checkpoint or the one it used.
+def _q_figure(summary: Mapping, folder: Path, out: Path) -> list[Path]:
+    """Fig. 1B of a 2D run at the default θ (into ``out``), from the run's own checkpoint in
+    ``folder`` or the one it used.
 
     A checkpoint that is gone (a summary copied from elsewhere) skips the figure with a warning.
     """
@@ -435,12 +450,10 @@ def _q_figure(summary: Mapping, folder: Path) -> list[Path]:
         warnings.warn(f"report: no Q-function figure: {error}", stacklevel=3)
         return []
     slices = critic_slices(model, critic, actor, model.theta_space.default())
-    return [plot_q_function_2d(slices, folder / "q_function.png")]
+    return [plot_q_function_2d(slices, out / "q_function.png")]
 
 
-def _belief_figures(
-    summary: Mapping, beliefs: Mapping[str, np.ndarray], folder: Path
-) -> list[Path]:
+def _belief_figures(summary: Mapping, beliefs: Mapping[str, np.ndarray], out: Path) -> list[Path]:
     """The two belief figures of each fitted recording, from ``beliefs.npz``'s arrays."""
     written = []
     distance = summary["state_units"][0]
@@ -454,14 +467,14 @@ def _belief_figures(
         title = f"{label}: beliefs under θ̂ ({summary.get('method', '')})"
         written.append(
             plot_belief_overhead(
-                arrays, folder / f"{label}_beliefs_overhead.png",
+                arrays, out / f"{label}_beliefs_overhead.png",
                 agent["theta_hat"].get("goal_radius"), distance_unit=distance, title=title,
             )
         )  # fmt: skip
         written.append(
             plot_belief_time(
                 arrays, summary["state_names"], summary["state_units"],
-                folder / f"{label}_beliefs_time.png", title=title,
+                out / f"{label}_beliefs_time.png", title=title,
             )
         )  # fmt: skip
     return written

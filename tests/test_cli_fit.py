@@ -302,6 +302,18 @@ def test_a_rerun_of_simulate_drops_the_old_summary_before_writing(tmp_path, monk
             ),
             "lacks or mangles field",
         ),
+        (  # the θ̂ figure draws before the belief figures find their field missing
+            lambda folder: (folder / "summary.json").write_text(
+                json.dumps(
+                    {
+                        k: v
+                        for k, v in json.loads((folder / "summary.json").read_text()).items()
+                        if k != "state_units"
+                    }
+                )
+            ),
+            "lacks or mangles field 'state_units'",
+        ),
         (
             lambda folder: (folder / "beliefs.npz").write_bytes(
                 (folder / "beliefs.npz").read_bytes()[:200]
@@ -320,6 +332,7 @@ def test_report_of_a_damaged_folder_exits_2_drawing_nothing(
     assert main(["report", str(tmp_path)]) == 2
     assert message in capsys.readouterr().err
     assert not list(tmp_path.glob("*.png"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["beliefs.npz", "summary.json"]
 
 
 def _edit(text: str, line: int, column: str, value: str) -> str:
