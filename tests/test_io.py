@@ -139,6 +139,21 @@ def test_resample_false_keeps_the_recording_and_warns(tmp_path, model2d, trials2
     assert back.shape[-1] == 2 * trials2d["mask"].sum(-1).max() - 1
 
 
+def test_a_trial_longer_than_the_task_allows_is_refused_naming_it(tmp_path, model2d, trials2d):
+    columns = trials_to_columns(trials2d, model2d)
+    first = columns["trial"] == columns["trial"][0]
+    rows = {k: v[first] for k, v in columns.items()}
+    extra = model2d.max_steps + 1 - len(rows["time"])  # the agent stands still for the rest
+    longer = {k: np.concatenate([v, np.repeat(v[-1:], extra)]) for k, v in rows.items()}
+    longer["time"] = model2d.dt * np.arange(model2d.max_steps + 1)
+    _write_raw(longer, tmp_path / "long.csv")
+    label = int(columns["trial"][0])
+    with pytest.raises(
+        ValueError, match=f"long.csv: trial {label}, field 'time': {model2d.max_steps + 1} steps of"
+    ):
+        read_trials(tmp_path / "long.csv", model2d)
+
+
 def test_a_recording_on_the_model_grid_is_not_resampled(tmp_path, model2d, trials2d):
     write_trials(trials2d, tmp_path / "t.npz", model2d)
     with warnings.catch_warnings():

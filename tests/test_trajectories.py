@@ -120,3 +120,14 @@ def test_atomic_write_gives_the_usual_file_mode(tmp_path):
     finally:
         os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o644
+
+
+def test_a_trial_longer_than_the_task_allows_is_refused(model, trials):
+    """Padding past ``max_steps`` is harmless; a recorded step there is not a trial the task
+    (or the policy, which reads the step over ``max_steps``) could have produced."""
+    longer = torch.cat([trials, trials[..., -5:]], -1)
+    longer["mask"][..., model.max_steps :] = False
+    assert validate_trials(longer, model).shape[-1] == model.max_steps + 5
+    longer["mask"][0, 2, :] = True
+    with pytest.raises(ValueError, match=f"agent 0, trial 2, step {model.max_steps}; the task"):
+        validate_trials(longer, model)

@@ -70,6 +70,13 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
             f"trials: field 'mask' marks no step at {_where(~mask[..., :1])}; "
             "every trial needs ≥ 1 step"
         )
+    late = mask & (torch.arange(mask.shape[-1], device=mask.device) >= model.max_steps)
+    if late.any():
+        raise ValueError(
+            f"trials: field 'mask' marks {_where(late)}; the task ends every trial within "
+            f"max_steps={model.max_steps} steps (0 to {model.max_steps - 1}), so cut or drop "
+            "longer trials"
+        )
     gaps = mask[..., 1:] & ~mask[..., :-1]
     if gaps.any():
         raise ValueError(
