@@ -112,6 +112,8 @@ class ThetaSpace:
         self[name]
         return self._index[name]
 
+    # low, high, default and free_mask live on the CPU unless a device is given: a θ space
+    # is a description, and its callers move them to their data
     def low(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
         return torch.tensor([p.low for p in self.parameters], dtype=dtype, device=device)
 

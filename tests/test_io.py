@@ -149,7 +149,7 @@ def test_a_trial_longer_than_the_task_allows_is_refused_naming_it(tmp_path, mode
     _write_raw(longer, tmp_path / "long.csv")
     label = int(columns["trial"][0])
     with pytest.raises(
-        ValueError, match=f"long.csv: trial {label}, field 'time': {model2d.max_steps + 1} steps of"
+        ValueError, match=f"long.csv: trial {label}, field 'time': {model2d.max_steps + 1} samples"
     ):
         read_trials(tmp_path / "long.csv", model2d)
 

@@ -870,7 +870,8 @@ def load_ensemble_policy(
     """The kept (best-by-evaluation) policy of a checkpoint: ``(actor, model, checkpoint)``.
 
     ``source`` is a path or the name of a packaged checkpoint (default: the shipped one); the
-    actor is built on ``device`` (whatever torch's default device is).
+    actor and the model (its action spec) are built on ``device``, whatever torch's default
+    device is.
     """
     with torch.device(device):
         config, model, ckpt = _load(source)

@@ -346,9 +346,9 @@ def _on_model_grid(
             time = grid
         if len(time) > model.max_steps:
             raise ValueError(
-                f"{source}: trial {label}, field {time_column!r}: {len(time)} steps of "
-                f"{model.dt:g} s; the task ends every trial within max_steps="
-                f"{model.max_steps}, so cut or drop longer trials"
+                f"{source}: trial {label}, field {time_column!r}: {len(time)} samples, each "
+                f"read as a model step; the task ends every trial within max_steps="
+                f"{model.max_steps} steps of {model.dt:g} s, so cut or drop longer trials"
             )
         out.append((label, {**trial, time_column: time}))
     return out

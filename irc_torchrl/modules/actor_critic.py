@@ -102,9 +102,7 @@ class FeaturePolicy(nn.Module):
     every smaller gradient passes unchanged.
     """
 
-    def __init__(
-        self, actor: TensorDictSequential, dtype: torch.dtype | None = None
-    ) -> None:
+    def __init__(self, actor: TensorDictSequential, dtype: torch.dtype | None = None) -> None:
         super().__init__()
         _, net, squash = actor.module
         self.mlp = net.module

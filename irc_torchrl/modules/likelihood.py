@@ -133,8 +133,9 @@ class CensoredGaussianActionModel(nn.Module):
             raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
         self.lapse = lapse
         self.actor = actor.requires_grad_(False)
-        self.register_buffer("low", low.to(torch.float64))
-        self.register_buffer("high", high.to(torch.float64))
+        for name, bound in (("low", low), ("high", high)):
+            where = bound.device if isinstance(bound, torch.Tensor) else "cpu"
+            self.register_buffer(name, torch.as_tensor(bound, dtype=torch.float64, device=where))
         self.atol = atol
         da = self.low.numel()
         self.nuisance_names = tuple(f"log_motor_noise_{i}" for i in range(da))
