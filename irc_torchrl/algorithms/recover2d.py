@@ -95,8 +95,9 @@ class Recovery2DConfig:
     #: 0.72–0.93 per parameter and draw)
     calibrate: int = 2
     #: how each parameter's calibration factor reads its tail: "shrunk" toward all
-    #: parameters' by as much as it is noise (over five draws 36 of 40 (draw, parameter)
-    #: cells inside 0.90–0.98), or its "own" 95% quantile alone (33 of 40)
+    #: parameters' by as much as it is noise (over five draws 33 of 40 (draw, parameter)
+    #: cells inside 0.90–0.98, 36 before the gated outer update), or its "own" 95% quantile
+    #: alone (32 of 40; 33 before)
     calibration_tail: str = "shrunk"
     #: the precision the frozen actor runs in inside the float64 likelihood: "float32" makes
     #: the recovery about 1.3× faster, with the same intervals at a given θ (different fits:
