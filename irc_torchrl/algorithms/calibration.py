@@ -270,13 +270,15 @@ def simulate_at_fits(
     world: torch.Tensor,
     n_trials: int,
     seed: int,
+    lapse: float = 0.0,
 ) -> TensorDict:
     """Trials ``[n_agents, n_trials, T]`` of agents acting as fitted: each at its θ̂ with
-    its fitted motor noise (``result.nuisance``, log sds), in its world ``[n_agents, d]``.
-    They run on the actor's device and come back on the CPU, as recordings are read."""
+    its fitted motor noise (``result.nuisance``, log sds) and the fit's ``lapse`` rate, in its
+    world ``[n_agents, d]``. They run on the actor's device and come back on the CPU, as
+    recordings are read."""
     device = next(actor.parameters()).device
     noise = result.nuisance.exp().unsqueeze(1).float()  # [agents, 1 (trials), action]
-    policy = motor_noise_policy(actor, model.action_spec.to(device), noise)
+    policy = motor_noise_policy(actor, model.action_spec.to(device), noise, lapse)
     theta, world = (x.float().to(device) for x in (result.theta_hat, world))
     return simulate_agents(model, policy, theta, n_trials, task_theta=world, seed=seed).cpu()
 

@@ -116,7 +116,9 @@ def simulate_recordings(
         prior = space.sample((config.n_agents,), generator=torch.Generator().manual_seed(seed))
         theta = space.from_dict(_theta_values(config.theta, "theta", space), prior, "theta")
         world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
-        policy = motor_noise_policy(actor, model.action_spec.to(target), config.motor_noise)
+        policy = motor_noise_policy(
+            actor, model.action_spec.to(target), config.motor_noise, config.lapse
+        )
         bar = tqdm(total=model.max_steps, desc="simulate", unit="step", disable=not progress)
         trials = simulate_agents(
             model,
@@ -276,7 +278,9 @@ def fit_recordings(
         recordings = [read_trials(p, model, units=units) for p in paths]
         read_s = time.perf_counter() - start
         truths = [_simulated_truth(p) for p in paths]
-        action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
+        action_model = censored_action_model(
+            actor, model, config.actor_dtype, config.motor_noise, config.lapse
+        )
         fits, beliefs, timings, checks = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress
         )
@@ -437,7 +441,7 @@ def _calibrate_fits(
             rows = torch.tensor(members, device=result.theta_hat.device)
             simulated = simulate_at_fits(
                 model, actor, result.select(rows), world[rows], n_trials,
-                seed=seed + 1000 * (k + 1) + g,
+                seed + 1000 * (k + 1) + g, action_model.lapse,
             )  # fmt: skip
             for j, i in enumerate(members):
                 synthetic[i] = simulated[j].select(*TRIAL_KEYS)

@@ -38,7 +38,7 @@ from irc_torchrl.algorithms.fit import FitResult, expected_intervals, fit_theta,
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
-from irc_torchrl.config import FitConfig, _one_of, config_to_dict
+from irc_torchrl.config import FitConfig, _one_of, _probability, config_to_dict
 from irc_torchrl.data.files import atomic_dir, write_json, write_text
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
@@ -79,6 +79,9 @@ class Recovery2DConfig:
     n_trials: int = 100
     #: the agents' motor-noise standard deviation (fitted as a nuisance, per action dimension)
     motor_noise: float = 0.1
+    #: how often each action dimension lapses (is unrelated to the belief), for the simulated
+    #: agents and in the fitted action model alike (0: never)
+    lapse: float = 0.0
     #: comma-separated estimators; when both run, ``marginal`` starts from the ``fit.n_starts``
     #: most likely (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
     methods: str = "map,marginal"
@@ -130,6 +133,7 @@ class Recovery2DConfig:
             raise ValueError("config: n_prior_agents + n_mistaken_agents must be ≥ 1")
         if not self.motor_noise > 0:
             raise ValueError(f"config: motor_noise must be > 0, got {self.motor_noise}")
+        _probability(lapse=self.lapse)
         self.fit.validate()
         _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         resolve_device(self.device)
@@ -165,7 +169,9 @@ def simulate_recovery_agents(
     theta_true = theta_true.to(device)
     mistaken = torch.arange(n, device=device) >= config.n_prior_agents
     world = torch.where(mistaken.unsqueeze(-1), space.default(device=device), theta_true)
-    policy = motor_noise_policy(actor, model.action_spec.to(device), config.motor_noise)
+    policy = motor_noise_policy(
+        actor, model.action_spec.to(device), config.motor_noise, config.lapse
+    )
     trials = simulate_agents(
         model,
         policy,
@@ -198,7 +204,9 @@ def predicted_widths(
         seed=seed, n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=max(n_trials)
     )
     trials, theta, _ = simulate_recovery_agents(model, actor, config)
-    action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
+    action_model = censored_action_model(
+        actor, model, config.actor_dtype, config.motor_noise, config.lapse
+    )
     loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
     space = model.theta_space
     widths = {}
@@ -245,7 +253,9 @@ def recover_firefly2d(
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
     n_agents = theta_true.shape[0]
-    action_model = censored_action_model(actor, model, config.actor_dtype, config.motor_noise)
+    action_model = censored_action_model(
+        actor, model, config.actor_dtype, config.motor_noise, config.lapse
+    )
     summary: dict = {
         "task": config.task,
         "seed": config.seed,
@@ -361,7 +371,7 @@ def _calibrate(
 
     def refit(i: int) -> dict[str, FitResult]:
         synthetic = simulate_at_fits(
-            model, actor, result, world, config.n_trials, seed=config.seed + 1000 + i
+            model, actor, result, world, config.n_trials, config.seed + 1000 + i, config.lapse
         )
         synthetic = synthetic.select(*RECORDED).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"

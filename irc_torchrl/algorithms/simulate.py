@@ -20,6 +20,7 @@ from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
+from irc_torchrl.modules.lapse import Lapse
 
 __all__ = ["boltzmann_policy", "motor_noise_policy", "simulate_agents", "first_trial_mask"]
 
@@ -43,9 +44,14 @@ def boltzmann_policy(
 
 
 def motor_noise_policy(
-    actor: TensorDictSequential, spec: TensorSpec, motor_noise: float | torch.Tensor
+    actor: TensorDictSequential,
+    spec: TensorSpec,
+    motor_noise: float | torch.Tensor,
+    lapse: float = 0.0,
 ) -> TensorDictSequential:
-    """A continuous actor plus Gaussian motor noise, clipped to ``spec``'s bounds.
+    """A continuous actor plus Gaussian motor noise, clipped to ``spec``'s bounds, and with
+    probability ``lapse`` per action dimension an action unrelated to the belief
+    (:class:`~irc_torchrl.modules.lapse.Lapse`).
 
     This is the agent the inverse objective's
     :class:`~irc_torchrl.modules.likelihood.CensoredGaussianActionModel` describes; the noise
@@ -61,7 +67,9 @@ def motor_noise_policy(
         spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1, device="cpu"
     )
     noise.std = std  # the module's noise scale, per action where it is a tensor
-    return TensorDictSequential(actor, noise)
+    if not lapse:
+        return TensorDictSequential(actor, noise)
+    return TensorDictSequential(actor, noise, Lapse(spec, lapse))
 
 
 def first_trial_mask(done: torch.Tensor) -> torch.Tensor:

@@ -2,6 +2,7 @@
 
 from irc_torchrl.modules.actor_critic import FeaturePolicy, make_actor, make_critic
 from irc_torchrl.modules.factorised_q import FactorisedQ
+from irc_torchrl.modules.lapse import Lapse
 from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
 from irc_torchrl.modules.pursuit import BeliefPursuit
 
@@ -11,6 +12,7 @@ __all__ = [
     "CensoredGaussianActionModel",
     "FactorisedQ",
     "FeaturePolicy",
+    "Lapse",
     "make_actor",
     "make_critic",
 ]

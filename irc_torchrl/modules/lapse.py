@@ -1,0 +1,45 @@
+"""Lapses: actions unrelated to the belief, as psychophysics models inattention."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import TensorSpec
+from torchrl.envs.utils import ExplorationType, exploration_type
+
+__all__ = ["Lapse"]
+
+
+class Lapse(TensorDictModuleBase):
+    """Replaces each action dimension, with probability ``lapse``, by a draw unrelated to the
+    belief: uniform over the bounds widened by half their width on each side, then clipped.
+
+    This is the lapse that :class:`~irc_torchrl.modules.likelihood.CensoredGaussianActionModel`
+    scores (density ``1/(2 width)`` inside the bounds, mass 1/4 at each), so agents simulated
+    with it are the agents that model describes. Like TorchRL's exploration modules it acts
+    only when exploring (``ExplorationType.RANDOM``); its draws come from torch's global
+    generator on the CPU, so a seeded rollout repeats them.
+    """
+
+    def __init__(self, spec: TensorSpec, lapse: float, action_key: str = "action") -> None:
+        super().__init__()
+        if not 0 <= lapse < 1:
+            raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
+        self.lapse = float(lapse)
+        self.action_key = action_key
+        self.in_keys = self.out_keys = [action_key]
+        # kept on the CPU, where the draws are made (not buffers: ``.to`` leaves them there)
+        self.low, self.high = (x.detach().float().cpu() for x in (spec.space.low, spec.space.high))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if not self.lapse or exploration_type() not in (ExplorationType.RANDOM, None):
+            return tensordict
+        action = tensordict.get(self.action_key)
+        lapsed = torch.rand(action.shape, device="cpu") < self.lapse
+        width = self.high - self.low
+        draw = self.low - width / 2 + 2 * width * torch.rand(action.shape, device="cpu")
+        draw = torch.minimum(torch.maximum(draw, self.low), self.high)
+        out = torch.where(lapsed.to(action.device), draw.to(action), action)
+        tensordict.set(self.action_key, out)
+        return tensordict
