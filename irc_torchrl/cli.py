@@ -167,7 +167,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     )
     _add_common(
         simulate,
-        "settings: n_agents, n_trials, motor_noise, threads, theta.<name> (the agents' θ), "
+        "settings: n_agents, n_trials, motor_noise, lapse (how often an action dimension is "
+        "unrelated to the belief; default 0), threads, theta.<name> (the agents' θ), "
         "task_theta.<name> (the world's θ), e.g. n_trials=50 theta.g_v=1.3",
     )
     simulate.set_defaults(run=_simulate)
@@ -201,7 +202,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     )
     _add_common(
         fit,
-        "settings: n_screen, n_starts, max_iter, motor_noise (initial), threads, "
+        "settings: n_screen, n_starts, max_iter, motor_noise (initial), lapse (the action "
+        "model's lapse rate, held fixed; default 0.01, 0: none), threads, "
         "curvature (bfgs, fisher or hessian: how the iterations measure curvature), "
         "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
         "intervals (wald, or profile: where the profile likelihood falls 1.92 below its top), "
