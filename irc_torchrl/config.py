@@ -129,7 +129,7 @@ class SimulateConfig:
     #: std of the Gaussian motor noise added to the policy's action (then clipped to the bounds)
     motor_noise: float = 0.1
     #: how often each action dimension lapses: replaced by a draw unrelated to the belief
-    #: (uniform over the bounds widened by half their width, clipped; 0: never)
+    #: (uniform over the bounds widened by half their width on each side, clipped; 0: never)
     lapse: float = 0.0
     #: the agents' θ, e.g. ``theta.g_v=1.3``; a parameter left out is drawn from the prior
     theta: dict = field(default_factory=dict)
@@ -165,7 +165,7 @@ class RecordingFitConfig:
     #: action model, held fixed. Recordings of real agents hold actions no policy explains
     #: (inattention); a lapse caps what each costs, where without one the motor noise widens
     #: to absorb them and the marginal fit's gradient can explode. Measured on simulated
-    #: agents: 0.01 costs nothing visible where there are no lapses (README). 0: none
+    #: agents: 0.01 has no consistent cost where there are no lapses (README). 0: none
     lapse: float = 0.01
     #: how the iterations measure curvature (see ``fit.curvature`` of ``irc recover``)
     curvature: str = "bfgs"

@@ -356,6 +356,8 @@ def expected_intervals(
     ``theta`` (``[n_agents, d]``; fixed parameters take the space's values), e.g. a simulated
     agent's θ*: how much a policy's actions reveal of θ, or how many trials an experiment
     needs. ``nuisance`` (the action model's, ``[n_agents, m]``) defaults to its initial value.
+    The draws are Gaussian, unclipped and without lapses: with an action model that lapses
+    at rate ε, the information is overstated by about a factor 1/(1 − ε).
     """
     if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
         raise ValueError(f"draws: expected an integer ≥ 1, got {draws!r}")

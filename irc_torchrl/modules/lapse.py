@@ -28,9 +28,12 @@ class Lapse(TensorDictModuleBase):
             raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
         self.lapse = float(lapse)
         self.action_key = action_key
-        self.in_keys = self.out_keys = [action_key]
+        self.in_keys, self.out_keys = [action_key], [action_key]
+        space = getattr(spec, "space", None)
+        if not (hasattr(space, "low") and hasattr(space, "high")):
+            raise TypeError(f"spec: expected a bounded action spec, got {type(spec).__name__}")
         # kept on the CPU, where the draws are made (not buffers: ``.to`` leaves them there)
-        self.low, self.high = (x.detach().float().cpu() for x in (spec.space.low, spec.space.high))
+        self.low, self.high = (x.detach().float().cpu() for x in (space.low, space.high))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if not self.lapse or exploration_type() not in (ExplorationType.RANDOM, None):

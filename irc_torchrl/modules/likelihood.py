@@ -109,7 +109,7 @@ class CensoredGaussianActionModel(nn.Module):
     clipped (density ``1/(2 width)`` inside, mass 1/4 at each bound). A lapse caps what one
     action can cost, so the few actions a Gaussian approximation of the agent's belief
     cannot explain (near a decision boundary) do not dominate the fit; it costs about
-    ``lapse`` nats per action where there are none.
+    ``lapse`` nats per scored action dimension where there are none.
 
     Args:
         actor: maps belief features ``[*B, df]`` to the noise-free action ``[*B, da]``.
@@ -180,7 +180,8 @@ class CensoredGaussianActionModel(nn.Module):
         generator: torch.Generator,
         scored: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """``log p(ã)`` of an action drawn from the model (held fixed), unclipped, ``[*B]``."""
+        """``log p(ã)`` of an action drawn from the model (held fixed), ``[*B]``: from the
+        Gaussian, unclipped and without lapses (its score shapes the fit's steps, not θ̂)."""
         mean = self.actor(features).to(features.dtype)
         var = (2 * nuisance).exp().expand_as(mean)
         return gaussian_log_prob_of_draw(mean, var, generator, scored)
