@@ -98,6 +98,8 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     assert len(agent["motor_noise"]) == 2 and all(0 < s < 1 for s in agent["motor_noise"])
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
+    assert summary["config"]["lapse"] == 0.01  # irc fit's default: recordings of real agents
+    assert "lapse rate (held): 0.01" in table
     # the hard E-step ignores the spread of the agent's beliefs: a particle filter finds the
     # recorded actions far more likely than it does
     assert agent["particle_check"]["approximation_gap"] > 5

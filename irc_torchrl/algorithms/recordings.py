@@ -558,7 +558,8 @@ def format_fit(summary: dict[str, Any]) -> str:
                 row += f"{'yes' if agent['identified'][name] else 'NO':<11}{units.get(name, '')}"
                 lines.append(row)
             noise = ", ".join(f"{v:.3g}" for v in agent["motor_noise"])
-            lines.append(f"  motor noise std (fitted): {noise}")
+            lapse = summary.get("config", {}).get("lapse", 0.0)
+            lines.append(f"  motor noise std (fitted): {noise}; lapse rate (held): {lapse:g}")
             check = agent.get("particle_check")
             if check:
                 lines.append(
