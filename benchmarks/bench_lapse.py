@@ -1,11 +1,11 @@
 """What a lapse in the action model buys and costs: agents that lapse, and agents that never do.
 
-For each pair (the agents' lapse rate, the fit's), simulates the same agents (θ* from the prior,
-motor noise 0.1, 100 trials each) and fits them with the marginal estimator and ``irc
-recover``'s fit settings, every parameter free. Prints per pair the median relative error of
-each free parameter, the fraction of fits converged, the median fitted motor noise per action
-dimension, the agents' mean trial length (a lapse of the forward control often stops a
-trial) and the time, side by side.
+For each pair (the agents' lapse rate, the fit's: held, or ``fit`` from 0.01), simulates the
+same agents (θ* from the prior, motor noise 0.1, 100 trials each) and fits them with the
+marginal estimator and ``irc recover``'s fit settings, every parameter free. Prints per pair
+the median relative error of each free parameter, the fraction of fits converged, the median
+fitted motor noise per action dimension, the fitted lapse rates' range, the agents' mean trial
+length (a lapse of the forward control often stops a trial) and the time, side by side.
 
 Run: ``python benchmarks/bench_lapse.py [--agents 8] [--trials 100] [--threads 2]``.
 """
@@ -23,8 +23,18 @@ from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-#: (the agents' lapse rate, the fit's)
-PAIRS = ((0.05, 0.0), (0.05, 0.05), (0.05, 0.01), (0.0, 0.0), (0.0, 0.01))
+#: (the agents' lapse rate, the fit's: a rate held, or "fit")
+PAIRS = (
+    (0.05, 0.0),
+    (0.05, 0.05),
+    (0.05, 0.01),
+    (0.05, "fit"),
+    (0.15, 0.01),
+    (0.15, "fit"),
+    (0.0, 0.0),
+    (0.0, 0.01),
+    (0.0, "fit"),
+)
 
 
 def main() -> None:
@@ -44,7 +54,10 @@ def main() -> None:
         policy = motor_noise_policy(actor, model.action_spec, 0.1, agents_lapse)
         trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
         held = trials.select("state", "action", "target", "mask", "task_theta")
-        action_model = censored_action_model(actor, model, "float32", lapse=fit_lapse)
+        fitted = fit_lapse == "fit"
+        action_model = censored_action_model(
+            actor, model, "float32", lapse=0.01 if fitted else fit_lapse, fit_lapse=fitted
+        )
         loss = InverseRationalLoss(model, action_model, n_agents=args.agents, method="marginal")
         start = time.perf_counter()
         result = fit_theta(
@@ -54,12 +67,14 @@ def main() -> None:
         seconds = time.perf_counter() - start
         truth = theta[:, free].double()
         error = ((result.theta_hat[:, free] - truth).abs() / truth).median(0).values
-        noise = result.nuisance.exp().median(0).values
+        noise = action_model.motor_noise(result.nuisance).median(0).values
+        rates = action_model.lapse_rate(result.nuisance)
         print(
             f"{agents_lapse:>6} {fit_lapse:>5}  "
             + " ".join(f"{e:.1%}" for e in error.tolist())
             + f"  converged {result.converged.double().mean():.0%}"
             + f"  motor noise {noise[0]:.3f}, {noise[1]:.3f}"
+            + (f"  lapse {rates.min():.4f}–{rates.max():.4f}" if fitted else "")
             + f"  trial {held['mask'].sum(-1).double().mean():.1f} steps  {seconds:.0f} s"
         )
 

@@ -19,11 +19,11 @@ paper's estimator: the observations at their most probable value) is 2-3 times f
 biased: with these seeds its gains are off by about 1% and its intervals, narrower than that,
 miss the truth.
 
-With a real recording, skip step 1. The command line does steps 2-4 in one go (``lapse=0``
-fits as this script does; the default, ``lapse=0.01``, lets a few actions be lapses that no
-belief explains, as real agents' recordings need):
+With a real recording, skip step 1. The command line does steps 2-4 in one go
+(``fit_lapse=false lapse=0`` fits as this script does; by default it also fits how often the
+agent lapses, its actions unrelated to its belief, as real agents' recordings need):
 
-    irc fit runs/tutorial/session.csv --out runs/tutorial/fit lapse=0 \\
+    irc fit runs/tutorial/session.csv --out runs/tutorial/fit fit_lapse=false lapse=0 \\
         --free g_v,g_w,obs_sigma_v units.x=cm units.y=cm units.target_x=cm \\
         units.target_y=cm units.v=cm/s units.heading=deg units.w=deg/s
 """

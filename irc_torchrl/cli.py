@@ -203,7 +203,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     _add_common(
         fit,
         "settings: n_screen, n_starts, max_iter, motor_noise (initial), lapse (the action "
-        "model's lapse rate, held fixed; default 0.01, 0: none), threads, "
+        "model's lapse rate: where its fit starts, default 0.01), fit_lapse (true; false "
+        "holds lapse fixed, 0: none), threads, "
         "curvature (bfgs, fisher or hessian: how the iterations measure curvature), "
         "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
         "intervals (wald, or profile: where the profile likelihood falls 1.92 below its top), "
@@ -299,7 +300,9 @@ def build_parser() -> argparse.ArgumentParser:
             "time) simulates 2 datasets per agent at its θ̂, refits them the same way and "
             "scales each parameter's intervals until 95% of the refits' cover (each "
             "parameter's tail shrunk toward all parameters' by as much as it is noise; "
-            "calibration_tail=own: its own alone)."
+            "calibration_tail=own: its own alone). lapse=0.05 makes the agents lapse (an "
+            "action dimension unrelated to the belief) and the fit hold that rate; with "
+            "fit_lapse=true the fit estimates each agent's rate instead, from 0.01."
         ),
     )
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")

@@ -24,6 +24,7 @@ from irc_torchrl.algorithms.ensemble import (
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
+from irc_torchrl.modules.likelihood import LAPSE_MAX
 
 if TYPE_CHECKING:  # recover2d imports this module
     from irc_torchrl.algorithms.recover2d import Recovery2DConfig
@@ -162,11 +163,15 @@ class RecordingFitConfig:
     #: the motor-noise std the fit starts from (a nuisance parameter, fitted beside θ)
     motor_noise: float = 0.1
     #: the probability that an action dimension lapses (is unrelated to the belief) in the
-    #: action model, held fixed. Recordings of real agents hold actions no policy explains
-    #: (inattention); a lapse caps what each costs, where without one the motor noise widens
-    #: to absorb them and the marginal fit's gradient can explode. Measured on simulated
-    #: agents: 0.01 has no consistent cost where there are no lapses (README). 0: none
+    #: action model: where its fit starts, or with ``fit_lapse=false`` its value held fixed.
+    #: Recordings of real agents hold actions no policy explains (inattention); a lapse caps
+    #: what each costs, where without one the motor noise widens to absorb them and the
+    #: marginal fit's gradient can explode (0, only when held: none)
     lapse: float = 0.01
+    #: fit each recording's lapse rate beside its motor noise (within (0, 0.5); on simulated
+    #: agents lapsing 5% or 15% it comes within 0.004 and 0.016 of the truth, and where
+    #: there are none it ends on its floor, 0.0012: README)
+    fit_lapse: bool = True
     #: how the iterations measure curvature (see ``fit.curvature`` of ``irc recover``)
     curvature: str = "bfgs"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
@@ -222,6 +227,8 @@ class RecordingFitConfig:
         _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         _one_of("calibration_tail", self.calibration_tail, TAILS)
         _probability(lapse=self.lapse)
+        if self.fit_lapse:
+            _fitted_lapse_start(self.lapse)
         return self
 
 
@@ -234,6 +241,14 @@ def _probability(**values: float) -> None:
     for name, value in values.items():
         if not 0 <= value < 1:
             raise ValueError(f"config: {name} must be a probability in [0, 1), got {value}")
+
+
+def _fitted_lapse_start(value: float) -> None:
+    if not 0 < value < LAPSE_MAX:
+        raise ValueError(
+            f"config: lapse (the fitted rate's start) must be in (0, {LAPSE_MAX}) with "
+            f"fit_lapse=true, got {value}"
+        )
 
 
 def _positive(**values: float) -> None:

@@ -3,6 +3,9 @@
 Fixed seeds throughout; tolerances are stated where they are asserted.
 """
 
+import dataclasses
+import math
+
 import pytest
 import torch
 
@@ -12,6 +15,7 @@ from irc_torchrl.algorithms.calibration import (
     calibrate_intervals,
     format_factors,
     interval_pivots,
+    simulate_at_fits,
 )
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
@@ -19,7 +23,7 @@ from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 from irc_torchrl.config import FitConfig
 from irc_torchrl.envs.firefly2d import Firefly2DModel
-from irc_torchrl.modules.actor_critic import FeaturePolicy
+from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.fisher import Z95, fisher_intervals
 from irc_torchrl.objectives.inverse import InverseRationalLoss
@@ -288,6 +292,39 @@ def test_motor_noise_may_differ_per_agent_and_action_dimension():
             assert r.std().item() == pytest.approx(std[agent, 0, dim].item(), rel=0.1)
     with pytest.raises(ValueError, match="motor_noise: expected positive"):
         motor_noise_policy(actor, model.action_spec, torch.tensor([0.1, 0.0]))
+
+
+def test_agents_simulated_at_fits_lapse_at_each_ones_fitted_rate():
+    """Calibration's simulated agents act with each fit's own motor noise and lapse rate: with
+    rates fitted at 0.3 and at the floor (0.0012) and a motor noise of 0.005, the fraction of
+    actions 0.05 or more from the actor's output (a lapse; the noise stays within 10 sd) is
+    about 0.3 × P(the lapse's draw lands that far), and nearly 0 (measured 0.268 of 1714
+    action dimensions, lapses ending trials early, and 0.0011 of 4600)."""
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    space = model.theta_space
+    action_model = censored_action_model(actor, model, lapse=0.01, fit_lapse=True)
+    theta_hat = space.sample((2,), generator=torch.Generator().manual_seed(0)).double()
+    logit = torch.tensor([[math.log(0.3 / 0.2)], [-6.0]], dtype=torch.float64)
+    nuisance = torch.cat([torch.full((2, 2), math.log(0.005), dtype=torch.float64), logit], -1)
+    result = dataclasses.replace(
+        _result(space, theta_hat, torch.eye(len(space.free_names)).expand(2, -1, -1).double()),
+        nuisance=nuisance,
+    )
+    world = space.default().expand(2, -1)
+    trials = simulate_at_fits(model, actor, action_model, result, world, 100, seed=0)
+    steps = torch.arange(trials.shape[-1]).view(1, 1, -1, 1).expand(*trials.shape, 1)
+    features = model.belief_features(
+        trials["belief", "mean"], trials["belief", "cov"], trials["target"], steps, trials["theta"]
+    )
+    with torch.no_grad():
+        output = FeaturePolicy(actor)(features)
+    far = (trials["action"] - output).abs() >= 0.05
+    recorded = trials["mask"].unsqueeze(-1).expand_as(far)
+    fraction = [far[i][recorded[i]].double().mean().item() for i in range(2)]
+    # a lapse's draw (uniform over [-2, 2], clipped) lands within 0.05 of the output with
+    # probability 0.1/4 inside the bounds, more where the output sits on a bound
+    assert 0.3 * 0.8 < fraction[0] < 0.3 * (1 - 0.1 / 4) + 0.03
+    assert fraction[1] < 0.01
 
 
 def test_recovery_reports_intervals_calibrated_on_simulated_refits():

@@ -98,8 +98,12 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     assert len(agent["motor_noise"]) == 2 and all(0 < s < 1 for s in agent["motor_noise"])
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
-    assert summary["config"]["lapse"] == 0.01  # irc fit's default: recordings of real agents
-    assert "lapse rate (held): 0.01" in table
+    # irc fit's default, for recordings of real agents: the lapse rate fitted, from 0.01; this
+    # agent never lapses, and its rate falls (measured: 0.0030, interval up to 0.022)
+    assert summary["config"]["lapse"] == 0.01 and summary["config"]["fit_lapse"]
+    low, high = agent["lapse_ci"]
+    assert 0 < low < agent["lapse"] < high < 0.05 and agent["lapse"] < 0.005
+    assert f"lapse rate (fitted): {agent['lapse']:.3g} [" in table
     # the hard E-step ignores the spread of the agent's beliefs: a particle filter finds the
     # recorded actions far more likely than it does
     assert agent["particle_check"]["approximation_gap"] > 5
@@ -234,6 +238,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["simulate", "lapse=1"], "lapse must be a probability in [0, 1), got 1"),
         (["fit", "FILE", "lapse=-0.1"], "lapse must be a probability in [0, 1), got -0.1"),
         (["recover", "lapse=1.5"], "lapse must be a probability in [0, 1), got 1.5"),
+        (["fit", "FILE", "lapse=0"], "lapse (the fitted rate's start) must be in (0, 0.5)"),
+        (["fit", "FILE", "fit_lapse=maybe"], "fit_lapse='maybe' is not a valid bool"),
         (["simulate", "--device", "nonsense"], "device:"),
         (["fit", "FILE", "--device", "meta"], "device: 'meta' tensors hold no values"),
         (["simulate", "--device", "cuda"], "device: 'cuda' requested but"),

@@ -174,12 +174,16 @@ def _trials(n_agents, n_trials, theta, motor, seed):
     return action_model, trials
 
 
-@pytest.mark.parametrize("components", [1, 16])
-def test_marginal_loss_gradient_matches_finite_differences(components):
+@pytest.mark.parametrize("components, fit_lapse", [(1, False), (16, False), (1, True)])
+def test_marginal_loss_gradient_matches_finite_differences(components, fit_lapse):
     from irc_torchrl.objectives.inverse import InverseRationalLoss
 
     theta = SPACE.from_dict({"obs_sigma_v": 0.6, "sigma_v": 0.3}).double().unsqueeze(0)
     action_model, trials = _trials(1, 4, theta, 0.15, seed=3)
+    if fit_lapse:  # the lapse rate's coordinate too, where it weighs each action's update
+        action_model = CensoredGaussianActionModel(
+            action_model.actor, -torch.ones(2), torch.ones(2), 0.15, lapse=0.05, fit_lapse=True
+        )
     loss = InverseRationalLoss(MODEL, action_model, method="marginal", components=components)
     with torch.no_grad():
         loss.theta_free.add_(0.1 * torch.randn(loss.theta_free.shape, dtype=torch.float64))

@@ -29,6 +29,7 @@ from irc_torchrl.objectives.fisher import (
     batched_hessian,
     fisher_intervals,
     narrow,
+    observed_covariance,
 )
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -97,6 +98,14 @@ class FitResult:
             information=self.information[rows],
         )
 
+    def nuisance_std(self) -> torch.Tensor:
+        """Standard deviations ``[n_agents, dn]`` of the nuisance coordinates (the fit's
+        units) from the observed information; ``inf`` where it does not bound them."""
+        cov, unbounded = observed_covariance(self.information)
+        dn = self.nuisance.shape[-1]
+        sd = cov.diagonal(dim1=-2, dim2=-1)[:, -dn:].clamp_min(0).sqrt()
+        return torch.where(unbounded[:, -dn:], torch.full_like(sd, torch.inf), sd)
+
     def agent(self, i: int) -> dict:
         """One agent's result as plain Python values (the ``summary.json`` entry)."""
 
@@ -161,6 +170,7 @@ def fit_theta(
     n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
     k = int(free.sum())
+    bounded = loss.bounded.to(device)
     if starts is not None:
         starts = space.validate(starts, "starts").double()
         if starts.shape[0] != n_agents:
@@ -243,7 +253,7 @@ def fit_theta(
     for iterations in range(1, max_iter + 1):
         # only rows still moving cost work; a rejected step leaves a row's derivatives valid
         active = (~converged & ~stalled).nonzero().squeeze(-1)
-        h, g = _pin_bounds(params[active], hessian[active], grad[active], k)
+        h, g = _pin_bounds(params[active], hessian[active], grad[active], bounded)
         d = damping[active]
         # the undamped Newton decrement: the decrease a full step promises (∞ where the
         # curvature is not positive definite); tiny means θ̂ is reached
@@ -258,8 +268,10 @@ def fit_theta(
         behind = _behind_best(value, converged, n_starts)[active]
         stalled[active] |= ~converged[active] & (behind > decrement.clamp_min(SWITCH))
         step, d = _damped_step(_absolute(h), g, d)
-        # θ̂ on a bound of θ: the logit would drift off forever, so it stops at ±BOUND
-        step[:, :k] = (params[active, :k] + step[:, :k]).clamp(-BOUND, BOUND) - params[active, :k]
+        # θ̂ (or a fitted lapse rate) on its bound: the logit would drift off forever, so it
+        # stops at ±BOUND
+        to_bound = (params[active] + step).clamp(-BOUND, BOUND) - params[active]
+        step = torch.where(bounded, to_bound, step)
         # BFGS rows need the gradient wherever a step lands: it comes with the trial's value
         quasi = near[active] & (curvature == "bfgs")
         trial_value, trial_grad = evaluate(params[active] + step, rows[active], quasi)
@@ -317,7 +329,7 @@ def fit_theta(
     # θ̂ is a maximum only where the observed information there is positive definite (BFGS's
     # curvature always is)
     maximum = torch.isfinite(
-        _newton_decrement(*_pin_bounds(params[pick], information, grad[pick], k))
+        _newton_decrement(*_pin_bounds(params[pick], information, grad[pick], bounded))
     )
     meat = None
     if covariance == "sandwich":
@@ -356,8 +368,8 @@ def expected_intervals(
     ``theta`` (``[n_agents, d]``; fixed parameters take the space's values), e.g. a simulated
     agent's θ*: how much a policy's actions reveal of θ, or how many trials an experiment
     needs. ``nuisance`` (the action model's, ``[n_agents, m]``) defaults to its initial value.
-    The draws are Gaussian, unclipped and without lapses: with an action model that lapses
-    at rate ε, the information is overstated by about a factor 1/(1 − ε).
+    The draws are unclipped, and lapse at the action model's rate (uniform over the widened
+    bounds, scored under the mixture), so lapses lower the information as they lower a fit's.
     """
     if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
         raise ValueError(f"draws: expected an integer ≥ 1, got {draws!r}")
@@ -451,9 +463,10 @@ def profile_intervals(
     column = cov[rows, :, which]
     sd = column[rows, which].clamp_min(1e-300).sqrt()
     point = centre[agent] + (side * Z95 / sd).unsqueeze(-1) * column
-    point[:, :k] = point[:, :k].clamp(-BOUND, BOUND)
-    bounded = torch.isfinite(wald.std[:, free][:, chosen]).reshape(-1).repeat_interleave(2)
-    done = ~bounded.to(device) | (singular != 0) | ~torch.isfinite(point).all(-1)
+    bounded = loss.bounded.to(device)
+    point = _clamp_bounded(point, bounded)
+    has_wald = torch.isfinite(wald.std[:, free][:, chosen]).reshape(-1).repeat_interleave(2)
+    done = ~has_wald.to(device) | (singular != 0) | ~torch.isfinite(point).all(-1)
     found = torch.zeros_like(done)
     fixed = curvature.clone()
 
@@ -473,7 +486,7 @@ def profile_intervals(
             break
         x, f, g, h = point[active], value[active], grad[active], curvature[active]
         j, i = which[active], torch.arange(len(active), device=device)
-        w, v, decrement = _held_step(x, g, h, j, damping[active], k)
+        w, v, decrement = _held_step(x, g, h, j, damping[active], bounded)
         c = x[i, j]
         gap = f - target[active]
         settled = decrement < tol
@@ -509,7 +522,7 @@ def profile_intervals(
         use_newton = (within & ~far & torch.isfinite(newton)).unsqueeze(-1)
         step = torch.where(outer.unsqueeze(-1), torch.where(use_newton, newton_x, fallback) - x, w)
         candidate = x + _within_region(step)
-        candidate[:, :k] = candidate[:, :k].clamp(-BOUND, BOUND)
+        candidate = _clamp_bounded(candidate, bounded)
         moving = ~reached
         f_c, g_c = torch.empty_like(f), torch.empty_like(g)
         if moving.any():
@@ -579,14 +592,14 @@ def _held_step(
     h: torch.Tensor,
     which: torch.Tensor,
     damping: torch.Tensor,
-    k: int,
+    bounded: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The damped Newton step of every coordinate but ``which`` (held, as are θ on a bound),
+    """The damped Newton step of every coordinate but ``which`` (held, as are those on a bound),
     how they follow a move of ``which`` at their minimum (``-h⁻¹ h_j``), and the decrease
     still to be had in them (the undamped decrement ``½ gᵀ h⁻¹ g`` over them), per row."""
     n, p = params.shape
     rows = torch.arange(n, device=params.device)
-    keep = ~_pinned(params, g, k)
+    keep = ~_pinned(params, g, bounded)
     keep[rows, which] = False
     eye = torch.eye(p, dtype=h.dtype, device=h.device)
     inner = torch.where(keep.unsqueeze(-1) & keep.unsqueeze(-2), h, eye)
@@ -621,16 +634,21 @@ def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) ->
     return value - reached.repeat_interleave(n_starts)
 
 
+def _clamp_bounded(params: torch.Tensor, bounded: torch.Tensor) -> torch.Tensor:
+    """``params [n, p]`` with the ``bounded`` coordinates ``[p]`` held within ``±BOUND``."""
+    return torch.where(bounded, params.clamp(-BOUND, BOUND), params)
+
+
 def _pin_bounds(
-    params: torch.Tensor, h: torch.Tensor, g: torch.Tensor, k: int
+    params: torch.Tensor, h: torch.Tensor, g: torch.Tensor, bounded: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Curvature and gradient with the θ coordinates held on a bound taken out.
+    """Curvature and gradient with the coordinates held on a bound taken out.
 
     A coordinate at ``±BOUND`` whose descent direction points further out stays where it is
     (an active bound constraint): its gradient is zeroed and its curvature decoupled, so the
     step and the Newton decrement concern the other coordinates only.
     """
-    pinned = _pinned(params, g, k)
+    pinned = _pinned(params, g, bounded)
     keep = ~pinned
     h = torch.where(
         keep.unsqueeze(-1) & keep.unsqueeze(-2), h, torch.diag_embed(pinned.to(h.dtype))
@@ -638,11 +656,10 @@ def _pin_bounds(
     return h, torch.where(pinned, torch.zeros_like(g), g)
 
 
-def _pinned(params: torch.Tensor, g: torch.Tensor, k: int) -> torch.Tensor:
-    """The θ coordinates on a bound whose descent direction points further out, ``[n, p]``."""
-    pinned = torch.zeros_like(g, dtype=torch.bool)
-    pinned[:, :k] = (params[:, :k].abs() >= BOUND - 1e-9) & (params[:, :k] * g[:, :k] < 0)
-    return pinned
+def _pinned(params: torch.Tensor, g: torch.Tensor, bounded: torch.Tensor) -> torch.Tensor:
+    """The ``bounded`` coordinates (``[p]``) on a bound whose descent direction points further
+    out, ``[n, p]``."""
+    return bounded & (params.abs() >= BOUND - 1e-9) & (params * g < 0)
 
 
 def _absolute(h: torch.Tensor) -> torch.Tensor:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -45,7 +44,7 @@ from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
-from irc_torchrl.objectives.fisher import Intervals
+from irc_torchrl.objectives.fisher import Z95, Intervals
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.plots import report_run
 from irc_torchrl.theta import ThetaSpace
@@ -279,7 +278,7 @@ def fit_recordings(
         read_s = time.perf_counter() - start
         truths = [_simulated_truth(p) for p in paths]
         action_model = censored_action_model(
-            actor, model, config.actor_dtype, config.motor_noise, config.lapse
+            actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
         fits, beliefs, timings, checks = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress
@@ -299,7 +298,9 @@ def fit_recordings(
         torch.stack([space.from_dict(t, field="theta_true") for t in truths]) if known else None
     )
     by_method = {
-        name: _scored(space, result, theta_true, paths, labels, recordings, checks[name])
+        name: _scored(
+            space, action_model, result, theta_true, paths, labels, recordings, checks[name]
+        )
         for name, result in fits.items()
     }
     for name, calibration in calibrations.items():
@@ -440,8 +441,8 @@ def _calibrate_fits(
         for g, (n_trials, members) in enumerate(groups.items()):
             rows = torch.tensor(members, device=result.theta_hat.device)
             simulated = simulate_at_fits(
-                model, actor, result.select(rows), world[rows], n_trials,
-                seed + 1000 * (k + 1) + g, action_model.lapse,
+                model, actor, action_model, result.select(rows), world[rows], n_trials,
+                seed + 1000 * (k + 1) + g,
             )  # fmt: skip
             for j, i in enumerate(members):
                 synthetic[i] = simulated[j].select(*TRIAL_KEYS)
@@ -475,6 +476,7 @@ def _add_calibrated(
 
 def _scored(
     space: ThetaSpace,
+    action_model: CensoredGaussianActionModel,
     result: FitResult,
     theta_true: torch.Tensor | None,
     paths: list[Path],
@@ -482,11 +484,19 @@ def _scored(
     recordings: list[TensorDict],
     checks: list[dict | None],
 ) -> dict[str, Any]:
-    """The summary's ``agents`` (and, with the truth, ``parameters``) of one method's fit."""
+    """The summary's ``agents`` (and, with the truth, ``parameters``) of one method's fit,
+    each with its motor noise and lapse rate (a fitted rate with its 95% interval from the
+    observed information)."""
     if theta_true is not None:
         scored = score_recovery(space.free_names, space.names, theta_true, result)
     else:
         scored = {"agents": [result.agent(i) for i in range(len(paths))]}
+    noise = action_model.motor_noise(result.nuisance)
+    lapse = action_model.lapse_rate(result.nuisance)
+    if action_model.fit_lapse:
+        # the interval of the lapse logit, mapped to the rate (within its (0, LAPSE_MAX))
+        reach = Z95 * result.nuisance_std()
+        lapse_ci = [action_model.lapse_rate(result.nuisance + s * reach) for s in (-1, 1)]
     for i, agent in enumerate(scored["agents"]):
         agent.pop("nuisance", None)
         agent.update(
@@ -494,8 +504,11 @@ def _scored(
             label=labels[i],
             n_trials=int(recordings[i].shape[0]),
             n_steps=int(recordings[i]["mask"].sum()),
-            motor_noise=[math.exp(float(v)) for v in result.nuisance[i]],
+            motor_noise=[float(v) for v in noise[i]],
+            lapse=float(lapse[i]),
         )
+        if action_model.fit_lapse:
+            agent["lapse_ci"] = [float(lapse_ci[0][i]), float(lapse_ci[1][i])]
         if checks[i] is not None:
             agent["particle_check"] = checks[i]
     return scored
@@ -558,8 +571,12 @@ def format_fit(summary: dict[str, Any]) -> str:
                 row += f"{'yes' if agent['identified'][name] else 'NO':<11}{units.get(name, '')}"
                 lines.append(row)
             noise = ", ".join(f"{v:.3g}" for v in agent["motor_noise"])
-            lapse = summary.get("config", {}).get("lapse", 0.0)
-            lines.append(f"  motor noise std (fitted): {noise}; lapse rate (held): {lapse:g}")
+            held = agent.get("lapse", summary.get("config", {}).get("lapse", 0.0))
+            lapse = f"lapse rate (held): {held:g}"
+            if "lapse_ci" in agent:
+                low, high = agent["lapse_ci"]
+                lapse = f"lapse rate (fitted): {agent['lapse']:.3g} [{low:.3g}, {high:.3g}]"
+            lines.append(f"  motor noise std (fitted): {noise}; {lapse}")
             check = agent.get("particle_check")
             if check:
                 lines.append(

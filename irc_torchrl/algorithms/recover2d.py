@@ -61,6 +61,10 @@ __all__ = [
 RECORDED = ("state", "action", "target", "mask", "task_theta")
 
 
+#: where a fitted lapse rate starts (``irc fit``'s default): not the agents' own rate
+FIT_LAPSE_START = 0.01
+
+
 @dataclass
 class Recovery2DConfig:
     """``irc recover``: ``n_prior_agents`` right and ``n_mistaken_agents`` mistaken agents."""
@@ -82,6 +86,9 @@ class Recovery2DConfig:
     #: how often each action dimension lapses (is unrelated to the belief), for the simulated
     #: agents and in the fitted action model alike (0: never)
     lapse: float = 0.0
+    #: fit each agent's lapse rate beside its motor noise (from ``FIT_LAPSE_START``, whatever
+    #: the agents' rate) instead of holding ``lapse``
+    fit_lapse: bool = False
     #: comma-separated estimators; when both run, ``marginal`` starts from the ``fit.n_starts``
     #: most likely (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
     methods: str = "map,marginal"
@@ -204,9 +211,7 @@ def predicted_widths(
         seed=seed, n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=max(n_trials)
     )
     trials, theta, _ = simulate_recovery_agents(model, actor, config)
-    action_model = censored_action_model(
-        actor, model, config.actor_dtype, config.motor_noise, config.lapse
-    )
+    action_model = _recovery_action_model(config, actor, model)
     loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
     space = model.theta_space
     widths = {}
@@ -215,6 +220,17 @@ def predicted_widths(
         median = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
         widths[n] = dict(zip(space.free_names, median.tolist(), strict=True))
     return widths
+
+
+def _recovery_action_model(
+    config: Recovery2DConfig, actor, model: Firefly2DModel
+) -> CensoredGaussianActionModel:
+    """The action model the recovery fits with: the agents' lapse rate held, or with
+    ``fit_lapse`` fitted from ``FIT_LAPSE_START``."""
+    lapse = FIT_LAPSE_START if config.fit_lapse else config.lapse
+    return censored_action_model(
+        actor, model, config.actor_dtype, config.motor_noise, lapse, config.fit_lapse
+    )
 
 
 def belief_agreement(recovered: torch.Tensor, true: torch.Tensor, state: torch.Tensor, mask):
@@ -253,9 +269,7 @@ def recover_firefly2d(
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
     n_agents = theta_true.shape[0]
-    action_model = censored_action_model(
-        actor, model, config.actor_dtype, config.motor_noise, config.lapse
-    )
+    action_model = _recovery_action_model(config, actor, model)
     summary: dict = {
         "task": config.task,
         "seed": config.seed,
@@ -287,7 +301,11 @@ def recover_firefly2d(
                 beliefs["belief", "mean"], trials["belief", "mean"], held["state"], held["mask"]
             ),
             "converged_fraction": float(result.converged.double().mean()),
-            "motor_noise_hat": statistics.median(result.nuisance.exp().flatten().tolist()),
+            "motor_noise_hat": statistics.median(
+                action_model.motor_noise(result.nuisance).flatten().tolist()
+            ),
+            "lapse_hat": statistics.median(action_model.lapse_rate(result.nuisance).tolist()),
+            "lapse_fitted": action_model.fit_lapse,
             "fit_s": fit_s,
         }
         timings[f"fit_{method}_s"] = fit_s
@@ -366,12 +384,13 @@ def _calibrate(
     progress: Callable[[str, int, int], None] | None = None,
 ) -> dict[str, Calibration]:
     """Every method's :class:`Calibration` from ``config.calibrate`` datasets simulated at
-    ``result``'s θ̂ and motor noise, each agent in its recorded world, refitted as ``held``."""
+    ``result``'s θ̂, motor noise and lapse rate, each agent in its recorded world, refitted
+    as ``held``."""
     world = held["task_theta"][:, 0, 0]
 
     def refit(i: int) -> dict[str, FitResult]:
         synthetic = simulate_at_fits(
-            model, actor, result, world, config.n_trials, config.seed + 1000 + i, config.lapse
+            model, actor, action_model, result, world, config.n_trials, config.seed + 1000 + i
         )
         synthetic = synthetic.select(*RECORDED).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"
@@ -484,6 +503,11 @@ def format_recovery(summary: dict) -> str:
             f"belief position r {beliefs['position_correlation']:.3f}, "
             f"belief error r {beliefs['belief_error_correlation']:.3f}"
         )
+        if entry.get("lapse_fitted"):
+            lines.append(
+                f"  fitted medians: motor noise {entry['motor_noise_hat']:.3f}, "
+                f"lapse rate {entry['lapse_hat']:.4f}"
+            )
         check = entry.get("particle_check")
         if check:
             lines.append(

@@ -47,7 +47,7 @@ def motor_noise_policy(
     actor: TensorDictSequential,
     spec: TensorSpec,
     motor_noise: float | torch.Tensor,
-    lapse: float = 0.0,
+    lapse: float | torch.Tensor = 0.0,
 ) -> TensorDictSequential:
     """A continuous actor plus Gaussian motor noise, clipped to ``spec``'s bounds, and with
     probability ``lapse`` per action dimension an action unrelated to the belief
@@ -57,7 +57,8 @@ def motor_noise_policy(
     :class:`~irc_torchrl.modules.likelihood.CensoredGaussianActionModel` describes; the noise
     is TorchRL's :class:`~torchrl.modules.AdditiveGaussianModule` at a constant scale.
     ``motor_noise`` is one standard deviation, or a tensor of them broadcasting against the
-    action (e.g. ``[n_agents, 1, da]`` for :func:`simulate_agents`: each agent's fitted noise).
+    action (e.g. ``[n_agents, 1, da]`` for :func:`simulate_agents`: each agent's fitted noise);
+    ``lapse`` likewise (``[n_agents, 1, 1]``).
     """
     # on the CPU, as TorchRL's module draws its noise there before moving it to the action
     std = torch.as_tensor(motor_noise, dtype=torch.float32, device="cpu")
@@ -67,7 +68,7 @@ def motor_noise_policy(
         spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1, device="cpu"
     )
     noise.std = std  # the module's noise scale, per action where it is a tensor
-    if not lapse:
+    if not torch.as_tensor(lapse, device="cpu").any():
         return TensorDictSequential(actor, noise)
     return TensorDictSequential(actor, noise, Lapse(spec, lapse))
 

@@ -129,10 +129,14 @@ def censored_action_model(
     actor_dtype: str = "float64",
     motor_noise: float = 0.1,
     lapse: float = 0.0,
+    fit_lapse: bool = False,
 ) -> CensoredGaussianActionModel:
     """Algorithm 2's action model around a trained actor: its output plus censored Gaussian
-    motor noise within the task's action bounds (and lapses at rate ``lapse``), the network run
-    in ``actor_dtype`` (a name of :data:`ACTOR_DTYPES`) inside the float64 likelihood."""
+    motor noise within the task's action bounds (and lapses at rate ``lapse``, or fitted from
+    there with ``fit_lapse``), the network run in ``actor_dtype`` (a name of
+    :data:`ACTOR_DTYPES`) inside the float64 likelihood."""
     bounds = model.action_spec.space
     policy = FeaturePolicy(actor, ACTOR_DTYPES[actor_dtype])
-    return CensoredGaussianActionModel(policy, bounds.low, bounds.high, motor_noise, lapse=lapse)
+    return CensoredGaussianActionModel(
+        policy, bounds.low, bounds.high, motor_noise, lapse=lapse, fit_lapse=fit_lapse
+    )

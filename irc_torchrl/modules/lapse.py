@@ -19,24 +19,27 @@ class Lapse(TensorDictModuleBase):
     scores (density ``1/(2 width)`` inside the bounds, mass 1/4 at each), so agents simulated
     with it are the agents that model describes. Like TorchRL's exploration modules it acts
     only when exploring (``ExplorationType.RANDOM``); its draws come from torch's global
-    generator on the CPU, so a seeded rollout repeats them.
+    generator on the CPU, so a seeded rollout repeats them. ``lapse`` is one rate, or a tensor
+    of them broadcasting against the action (e.g. ``[n_agents, 1, 1]``: each agent's own).
     """
 
-    def __init__(self, spec: TensorSpec, lapse: float, action_key: str = "action") -> None:
+    def __init__(
+        self, spec: TensorSpec, lapse: float | torch.Tensor, action_key: str = "action"
+    ) -> None:
         super().__init__()
-        if not 0 <= lapse < 1:
-            raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
-        self.lapse = float(lapse)
+        # kept on the CPU, where the draws are made (not a buffer: ``.to`` leaves it there)
+        self.lapse = torch.as_tensor(lapse, dtype=torch.float32, device="cpu").detach().cpu()
+        if not ((self.lapse >= 0) & (self.lapse < 1)).all():
+            raise ValueError(f"lapse: expected probabilities in [0, 1), got {lapse}")
         self.action_key = action_key
         self.in_keys, self.out_keys = [action_key], [action_key]
         space = getattr(spec, "space", None)
         if not (hasattr(space, "low") and hasattr(space, "high")):
             raise TypeError(f"spec: expected a bounded action spec, got {type(spec).__name__}")
-        # kept on the CPU, where the draws are made (not buffers: ``.to`` leaves them there)
         self.low, self.high = (x.detach().float().cpu() for x in (space.low, space.high))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if not self.lapse or exploration_type() not in (ExplorationType.RANDOM, None):
+        if not self.lapse.any() or exploration_type() not in (ExplorationType.RANDOM, None):
             return tensordict
         action = tensordict.get(self.action_key)
         lapsed = torch.rand(action.shape, device="cpu") < self.lapse

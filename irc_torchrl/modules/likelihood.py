@@ -9,17 +9,28 @@ sampled score, whose outer product estimates the Fisher information (Fisher scor
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["BoltzmannActionModel", "CensoredGaussianActionModel", "gaussian_log_prob_of_draw"]
+__all__ = [
+    "LAPSE_MAX",
+    "BoltzmannActionModel",
+    "CensoredGaussianActionModel",
+    "gaussian_log_prob_of_draw",
+]
 
 #: standard deviations beyond which an action's innovation moves the latent's mean no further
 #: (a gated update): far outside its predictive, the Gaussian update's step is extrapolation,
 #: and iterated it made the outer filter chaotic (gradients of 1e16 and more over 100 steps
 #: at 1e-3 motor noise); simulated agents' innovations stay within about 12
 _INNOVATION_GATE = 30.0
+
+#: the largest lapse rate a fit may reach (its coordinate is a logit scaled to (0, LAPSE_MAX)):
+#: beyond half, lapses would explain the actions better than the belief does
+LAPSE_MAX = 0.5
 
 
 def _scored_sum(logp: torch.Tensor, scored: torch.Tensor | None) -> torch.Tensor:
@@ -39,17 +50,32 @@ def gaussian_log_prob_of_draw(
     var: torch.Tensor,
     generator: torch.Generator,
     scored: torch.Tensor | None = None,
+    lapse: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
-    """``Σ log N(ã; mean, var)`` over the (scored) last dim for ``ã`` drawn and held fixed.
+    """``Σ log p(ã)`` over the (scored) last dim for ``ã ~ N(mean, var)`` drawn and held fixed.
 
     Its gradient is ``(∂mean)ᵀ ε/σ + (∂var)ᵀ (ε² − 1)/(2 var)`` with ``ε ~ N(0, 1)``: a score
-    whose expected outer product is the Gaussian's Fisher information.
+    whose expected outer product is the Gaussian's Fisher information. With ``lapse``
+    (``log ε``, ``log(1 − ε)`` broadcasting against ``mean``, and the bounds ``low``,
+    ``high``) each dimension is instead drawn, with probability ε, uniformly over the bounds
+    widened by half their width on each side, and scored under that mixture (unclipped), so
+    the score carries the lapse rate's information too.
     """
-    noise = torch.randn(
-        mean.shape, dtype=mean.dtype, generator=generator, device=generator.device
-    ).to(mean.device)
-    draw = (mean + var.sqrt() * noise).detach()
+
+    def draw_like(sample: Callable[..., torch.Tensor]) -> torch.Tensor:
+        kind = {"dtype": mean.dtype, "generator": generator, "device": generator.device}
+        return sample(mean.shape, **kind).to(mean.device)
+
+    draw = mean + var.sqrt() * draw_like(torch.randn)
+    if lapse is not None:
+        log_lapse, log_keep, low, high = lapse
+        width = high - low
+        lapsed = draw_like(torch.rand) < log_lapse.detach().exp()
+        draw = torch.where(lapsed, low - width / 2 + 2 * width * draw_like(torch.rand), draw)
+    draw = draw.detach()
     logp = -0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)
+    if lapse is not None:
+        logp = torch.logaddexp(logp + log_keep, log_lapse - torch.log(2 * width))
     return _scored_sum(logp, scored)
 
 
@@ -57,6 +83,7 @@ class BoltzmannActionModel(nn.Module):
     """Discrete actions drawn from ``softmax(Q(b, ·, θ) / τ)``; the nuisance is ``log τ``."""
 
     nuisance_names = ("log_temperature",)
+    nuisance_bounded = (False,)
 
     def __init__(self, q_network: nn.Module, temperature: float = 0.5) -> None:
         super().__init__()
@@ -85,6 +112,23 @@ class BoltzmannActionModel(nn.Module):
         return logp.gather(-1, draw.view(*logp.shape[:-1], 1)).squeeze(-1)
 
 
+def _mix_lapse(
+    logp: torch.Tensor,
+    clipped: torch.Tensor,
+    width: torch.Tensor,
+    logs: tuple[torch.Tensor, torch.Tensor] | None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``log p`` of the lapse mixture (``logs``: ``log ε``, ``log(1 − ε)``), and the model's
+    responsibility for the action (``None`` without lapses: it is responsible for each)."""
+    if logs is None:
+        return logp, None
+    log_lapse, log_keep = logs
+    lapse = torch.where(clipped, math.log(0.25), -torch.log(2 * width).expand_as(logp))
+    model = logp + log_keep
+    mixed = torch.logaddexp(model, lapse + log_lapse)
+    return mixed, (model - mixed).exp()
+
+
 def _mills_ratio(alpha: torch.Tensor) -> torch.Tensor:
     """``φ(α) / Φ(-α)``, accurate for every ``α``: beyond the mean through ``erfcx``, since
     ``exp(-α²/2 - log Φ(-α))`` loses the digits that the tail's variance factor
@@ -109,14 +153,17 @@ class CensoredGaussianActionModel(nn.Module):
     clipped (density ``1/(2 width)`` inside, mass 1/4 at each bound). A lapse caps what one
     action can cost, so the few actions a Gaussian approximation of the agent's belief
     cannot explain (near a decision boundary) do not dominate the fit; it costs about
-    ``lapse`` nats per scored action dimension where there are none.
+    ``lapse`` nats per scored action dimension where there are none. With ``fit_lapse`` the
+    rate is a nuisance parameter too (``lapse`` is where its fit starts): its coordinate is a
+    logit scaled to ``(0, LAPSE_MAX)``, bounded in the fit like θ's.
 
     Args:
         actor: maps belief features ``[*B, df]`` to the noise-free action ``[*B, da]``.
         low, high: the action bounds, ``[da]``.
         motor_noise: the initial motor-noise standard deviation.
         atol: how close to a bound a recorded action counts as clipped.
-        lapse: the lapse probability, in ``[0, 1)``.
+        lapse: the lapse probability, in ``[0, 1)`` (in ``(0, LAPSE_MAX)`` when fitted).
+        fit_lapse: fit the lapse rate per agent beside the motor noise.
     """
 
     def __init__(
@@ -127,19 +174,55 @@ class CensoredGaussianActionModel(nn.Module):
         motor_noise: float = 0.1,
         atol: float = 1e-6,
         lapse: float = 0.0,
+        fit_lapse: bool = False,
     ) -> None:
         super().__init__()
         if not 0 <= lapse < 1:
             raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
+        if fit_lapse and not 0 < lapse < LAPSE_MAX:
+            raise ValueError(
+                f"lapse: expected the fitted rate's start in (0, {LAPSE_MAX}), got {lapse}"
+            )
         self.lapse = lapse
+        self.fit_lapse = fit_lapse
         self.actor = actor.requires_grad_(False)
         for name, bound in (("low", low), ("high", high)):
             where = bound.device if isinstance(bound, torch.Tensor) else "cpu"
             self.register_buffer(name, torch.as_tensor(bound, dtype=torch.float64, device=where))
         self.atol = atol
         da = self.low.numel()
-        self.nuisance_names = tuple(f"log_motor_noise_{i}" for i in range(da))
-        self.nuisance_init = torch.full((da,), math.log(motor_noise), device="cpu")
+        names = [f"log_motor_noise_{i}" for i in range(da)]
+        init = [math.log(motor_noise)] * da
+        if fit_lapse:
+            names.append("logit_lapse")
+            init.append(math.log(lapse / (LAPSE_MAX - lapse)))
+        self.nuisance_names = tuple(names)
+        self.nuisance_init = torch.tensor(init, device="cpu")
+        #: which nuisance coordinates are bounded logits (held within the fit's bounds)
+        self.nuisance_bounded = (False,) * da + (True,) * fit_lapse
+
+    def motor_noise(self, nuisance: torch.Tensor) -> torch.Tensor:
+        """The motor-noise standard deviations ``[*B, da]`` of nuisance rows ``[*B, dn]``."""
+        return nuisance[..., : self.low.numel()].exp()
+
+    def _motor_variance(self, nuisance: torch.Tensor) -> torch.Tensor:
+        return (2 * nuisance[..., : self.low.numel()]).exp()
+
+    def lapse_rate(self, nuisance: torch.Tensor) -> torch.Tensor:
+        """The lapse rate ``[*B]`` of nuisance rows ``[*B, dn]``."""
+        if self.fit_lapse:
+            return LAPSE_MAX * torch.sigmoid(nuisance[..., -1])
+        return torch.full_like(nuisance[..., 0], self.lapse)
+
+    def _lapse_logs(self, nuisance: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``log ε`` and ``log(1 − ε)``, ``[*B]`` (``None`` where nothing lapses)."""
+        if self.fit_lapse:
+            u = nuisance[..., -1]
+            return math.log(LAPSE_MAX) + F.logsigmoid(u), torch.log1p(-LAPSE_MAX * u.sigmoid())
+        if not self.lapse:
+            return None
+        ones = torch.ones_like(nuisance[..., 0])
+        return ones * math.log(self.lapse), ones * math.log1p(-self.lapse)
 
     def log_prob(
         self,
@@ -150,7 +233,7 @@ class CensoredGaussianActionModel(nn.Module):
     ) -> torch.Tensor:
         """``log p(action)`` summed over the ``scored`` action dimensions (all), ``[*B]``."""
         mean = self.actor(features).to(features.dtype)
-        std = nuisance.exp()
+        std = self.motor_noise(nuisance)
         low, high = self.low.to(features.dtype), self.high.to(features.dtype)
         z = (action - mean) / std
         density = _standard_log_density(z, std)
@@ -158,20 +241,11 @@ class CensoredGaussianActionModel(nn.Module):
         above = torch.special.log_ndtr((mean - high) / std)
         lower, upper = action <= low + self.atol, action >= high - self.atol
         logp = torch.where(upper, above, torch.where(lower, below, density))
-        logp, _ = self._mix_lapse(logp, lower | upper, high - low)
+        logs = self._lapse_logs(nuisance)
+        if logs is not None:
+            logs = tuple(x.unsqueeze(-1) for x in logs)
+        logp, _ = _mix_lapse(logp, lower | upper, high - low, logs)
         return _scored_sum(logp, scored)
-
-    def _mix_lapse(
-        self, logp: torch.Tensor, clipped: torch.Tensor, width: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """``log p`` of the lapse mixture, and the model's responsibility for the action
-        (``None`` without a lapse: the model is responsible for every action)."""
-        if not self.lapse:
-            return logp, None
-        lapse = torch.where(clipped, math.log(0.25), -torch.log(2 * width).expand_as(logp))
-        model = logp + math.log1p(-self.lapse)
-        mixed = torch.logaddexp(model, lapse + math.log(self.lapse))
-        return mixed, (model - mixed).exp()
 
     def log_prob_of_draw(
         self,
@@ -180,11 +254,27 @@ class CensoredGaussianActionModel(nn.Module):
         generator: torch.Generator,
         scored: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """``log p(ã)`` of an action drawn from the model (held fixed), ``[*B]``: from the
-        Gaussian, unclipped and without lapses (its score shapes the fit's steps, not θ̂)."""
+        """``log p(ã)`` of an action drawn from the model (held fixed), ``[*B]``: unclipped
+        (its score shapes the fit's steps, not θ̂)."""
         mean = self.actor(features).to(features.dtype)
-        var = (2 * nuisance).exp().expand_as(mean)
-        return gaussian_log_prob_of_draw(mean, var, generator, scored)
+        var = self._motor_variance(nuisance).expand_as(mean)
+        return self.log_prob_of_gaussian_draw(mean, var, nuisance, generator, scored)
+
+    def log_prob_of_gaussian_draw(
+        self,
+        mean: torch.Tensor,
+        var: torch.Tensor,
+        nuisance: torch.Tensor,
+        generator: torch.Generator,
+        scored: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """:func:`gaussian_log_prob_of_draw` of a predictive ``N(mean, var)`` ``[*B, da]``,
+        with this model's lapses at the rate of ``nuisance`` ``[*B, dn]``."""
+        logs = self._lapse_logs(nuisance)
+        if logs is not None:
+            low, high = self.low.to(mean.dtype), self.high.to(mean.dtype)
+            logs = (*(x.unsqueeze(-1) for x in logs), low, high)
+        return gaussian_log_prob_of_draw(mean, var, generator, scored, logs)
 
     def assimilate(
         self,
@@ -223,7 +313,8 @@ class CensoredGaussianActionModel(nn.Module):
             of each action dimension (given the dimensions before it), ``[*B, da]`` each.
         """
         low, high = self.low.to(mean.dtype), self.high.to(mean.dtype)
-        noise_var = (2 * nuisance).exp()
+        noise_var = self._motor_variance(nuisance)
+        logs = self._lapse_logs(nuisance)
         shift = torch.zeros_like(cov[..., 0])
         shift_action = torch.zeros_like(mean)
         logp = torch.zeros_like(mean[..., 0])
@@ -246,8 +337,8 @@ class CensoredGaussianActionModel(nn.Module):
             ratio = _mills_ratio(alpha)
             clipped = upper | lower
             keep = torch.ones_like(m) if scored is None else scored[..., i].to(m.dtype)
-            step_logp, weight = self._mix_lapse(
-                torch.where(clipped, tail, interior), clipped, high[i] - low[i]
+            step_logp, weight = _mix_lapse(
+                torch.where(clipped, tail, interior), clipped, high[i] - low[i], logs
             )
             logp = logp + keep * step_logp
             # the innovation in standard deviations (a tail's Mills ratio), gated

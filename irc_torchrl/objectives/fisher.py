@@ -18,7 +18,14 @@ import torch
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["Z95", "batched_hessian", "Intervals", "fisher_intervals", "narrow"]
+__all__ = [
+    "Z95",
+    "batched_hessian",
+    "Intervals",
+    "fisher_intervals",
+    "narrow",
+    "observed_covariance",
+]
 
 #: two-sided 95% normal quantile
 Z95 = 1.959963984540054
@@ -61,6 +68,18 @@ class Intervals:
         return Intervals(*(getattr(self, f.name)[rows] for f in dataclasses.fields(self)))
 
 
+def observed_covariance(hessian: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The inverse of a Hessian ``[n, p, p]`` over its positive curvature, and which
+    coordinates it leaves unbounded ``[n, p]``: a direction of zero or negative curvature
+    leaves the coordinates that load on it without an interval (infinite), and only those."""
+    eigval, eigvec = torch.linalg.eigh(hessian)
+    positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
+    loading = eigvec**2  # [n, p coordinates, p directions]
+    unbounded = ((loading > 1e-8) & ~positive.unsqueeze(1)).any(-1)
+    inv_eig = torch.where(positive, 1 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+    return (eigvec * inv_eig.unsqueeze(-2)) @ eigvec.transpose(-1, -2), unbounded
+
+
 def fisher_intervals(
     space: ThetaSpace,
     theta_hat: torch.Tensor,
@@ -78,14 +97,8 @@ def fisher_intervals(
     device = theta_hat.device
     free = space.free_mask.to(device)
     k = int(free.sum())
-    eigval, eigvec = torch.linalg.eigh(hessian)
-    positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
-    # a direction of zero or negative curvature leaves the parameters that load on it without
-    # an interval (infinite), and only those
-    loading = eigvec[:, :k] ** 2  # [n, k parameters, p directions]
-    unbounded = ((loading > 1e-8) & ~positive.unsqueeze(1)).any(-1)
-    inv_eig = torch.where(positive, 1 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
-    cov_u = (eigvec * inv_eig.unsqueeze(-2)) @ eigvec.transpose(-1, -2)
+    cov_u, unbounded = observed_covariance(hessian)
+    unbounded = unbounded[:, :k]
     if meat is not None:
         cov_u = cov_u @ meat @ cov_u
     var_u = cov_u.diagonal(dim1=-2, dim2=-1)[:, :k]

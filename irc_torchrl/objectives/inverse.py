@@ -119,6 +119,14 @@ class InverseRationalLoss(LossModule):
         """Names of the fitted coordinates: free θ, then the nuisance parameters."""
         return [*self.theta_space.free_names, *self.action_model.nuisance_names]
 
+    @property
+    def bounded(self) -> torch.Tensor:
+        """Which fitted coordinates are bounded logits, ``[p]``: every free θ, and the
+        nuisance parameters the action model bounds (a fitted lapse rate)."""
+        k = int(self.theta_space.free_mask.sum())
+        flags = [True] * k + list(self.action_model.nuisance_bounded)
+        return torch.tensor(flags, device=self.theta_free.device)
+
     def theta(self, theta_free: torch.Tensor | None = None) -> torch.Tensor:
         """Full natural θ ``[n, d]`` from unconstrained free coordinates ``[n, d_free]``."""
         theta_free = self.theta_free if theta_free is None else theta_free

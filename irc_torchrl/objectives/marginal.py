@@ -38,7 +38,7 @@ from torch.func import vjp, vmap
 
 from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_update
 from irc_torchrl.envs.model import TaskModel
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel, gaussian_log_prob_of_draw
+from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 
 __all__ = [
     "FINAL_STEPS",
@@ -88,7 +88,7 @@ def marginal_filter(
         mask: the recorded steps ``[*B, T]``; a trial is filtered up to its last recorded step
             only (trials of a dataset differ in length), later outputs are zero.
         generator: if given, each step also scores an action drawn from its predictive
-            distribution (:func:`~irc_torchrl.modules.likelihood.gaussian_log_prob_of_draw`;
+            distribution (``action_model.log_prob_of_gaussian_draw``, lapses included;
             under a mixture, from its moment-matched Gaussian).
         moments: one of :data:`MOMENT_RULES`, how the policy's output over the uncertain
             belief is predicted (a cubature rule, or the tangent at the mean).
@@ -258,7 +258,9 @@ def _outer_pass(
                 covs.append((weight * cov).sum(1))
                 outers.append((weight * (o_m + spread @ spread.mT)).sum(1))
         if generator is not None:
-            draws.append(gaussian_log_prob_of_draw(*drawn, generator, scored))
+            draws.append(
+                action_model.log_prob_of_gaussian_draw(*drawn, nuisance[:n], generator, scored)
+            )
         below = running[k + 1] if k + 1 < len(running) else 0
         if not (below or carry):
             break
