@@ -96,6 +96,8 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
         assert agent["theta_hat"][name] == pytest.approx(TRUTH[name], abs=1e-6)
     assert set(summary["parameters"]) == set(FREE)
     assert len(agent["motor_noise"]) == 2 and all(0 < s < 1 for s in agent["motor_noise"])
+    for std, (low, high) in zip(agent["motor_noise"], agent["motor_noise_ci"], strict=True):
+        assert 0 < low < std < high
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
     # irc fit's default, for recordings of real agents: the lapse rate fitted, from 0.01; this

@@ -11,12 +11,11 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs import ExplorationType, set_exploration_type
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
-from irc_torchrl.algorithms.fit import fit_theta
+from irc_torchrl.algorithms.fit import BOUND, _clamp_bounded, _pin_bounds, _pinned, fit_theta
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules import Lapse
 from irc_torchrl.modules.actor_critic import censored_action_model
-from irc_torchrl.objectives.fisher import Z95
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 SPEC = Firefly2DModel().action_spec  # bounds [-1, 1] in both dimensions
@@ -53,10 +52,22 @@ def test_lapses_repeat_with_the_seed_and_stay_off_when_acting_greedily():
     assert (_lapsed(0.0, 1000, seed=0) == 0.3).all()
 
 
-@pytest.mark.parametrize("lapse", [-0.1, 1.0, math.nan, torch.tensor([[0.1], [1.0]])])
-def test_a_lapse_outside_zero_to_one_is_refused(lapse):
-    with pytest.raises(ValueError, match=r"lapse: expected probabilities in \[0, 1\)"):
+@pytest.mark.parametrize(
+    "lapse, shown",
+    [(-0.1, "-0.1"), (1.0, "1"), (math.nan, "nan"), (torch.tensor([[0.1], [1.0]]), "1")],
+)
+def test_a_lapse_outside_zero_to_one_is_refused(lapse, shown):
+    with pytest.raises(
+        ValueError, match=rf"lapse: expected probabilities in \[0, 1\), got {shown}$"
+    ):
         Lapse(SPEC, lapse)
+
+
+def test_per_agent_rates_that_do_not_fit_the_action_are_refused():
+    td = TensorDict({"action": torch.zeros(2, 2)}, [2])
+    for shape in ((3, 1), (2, 2, 2)):
+        with pytest.raises(ValueError, match=r"lapse: expected rates broadcasting against the"):
+            Lapse(SPEC, torch.full(shape, 0.1))(td)
 
 
 def test_a_lapse_keeps_the_marginal_gradient_finite_where_the_policy_cannot_act_so():
@@ -109,7 +120,7 @@ def test_agents_that_lapse_are_fitted_with_their_motor_noise_only_by_a_lapse_mod
         result = fit_theta(
             loss, held, max_iter=30, seed=0, n_screen=8, n_starts=1, curvature="bfgs"
         )
-        noise[lapse] = result.nuisance.exp()
+        noise[lapse] = action_model.motor_noise(result.nuisance)
         if lapse:
             gains = [space.index("g_v"), space.index("g_w")]
             error = (result.theta_hat[:, gains] - theta[:, gains]).abs() / theta[:, gains]
@@ -135,9 +146,45 @@ def test_a_fitted_lapse_rate_finds_each_agents_own():
     loss = InverseRationalLoss(model, action_model, n_agents=4, method="marginal")
     result = fit_theta(loss, held, max_iter=30, seed=0, n_screen=8, n_starts=1, curvature="bfgs")
     fitted = action_model.lapse_rate(result.nuisance)
-    reach = Z95 * result.nuisance_std()
-    low, high = (action_model.lapse_rate(result.nuisance + s * reach) for s in (-1, 1))
+    low, high = map(action_model.lapse_rate, result.nuisance_intervals(loss.bounded[-3:]))
     assert ((fitted[:2] - 0.1).abs() < 0.03).all()
     assert ((low[:2] < 0.1) & (0.1 < high[:2])).all()
-    assert (fitted[2:] < 0.005).all()
+    # held on the fit's bound (the rate's floor), whose interval reaches down to 0
+    assert (result.nuisance[2:, -1] == -BOUND).all() and (low[2:] == 0).all()
+    assert (high[2:] > fitted[2:]).all()
     assert ((action_model.motor_noise(result.nuisance) - 0.1).abs() < 0.02).all()
+
+
+def test_the_fit_holds_any_bounded_coordinate_within_its_bounds():
+    """The fit's bound logic follows a mask, not "the first k": a bounded coordinate at
+    ±BOUND whose gradient points out is pinned (gradient zeroed, curvature decoupled) and
+    clamped; an unbounded one anywhere is left alone."""
+    bounded = torch.tensor([True, False, True])
+    params = torch.tensor([[BOUND, 9.0, -BOUND], [BOUND, 9.0, 0.0]], dtype=torch.float64)
+    g = torch.tensor([[-1.0, 1.0, 1.0], [1.0, -1.0, 1.0]], dtype=torch.float64)
+    # descent is −g: row 0 leans out on both bounded ends, row 1 on neither
+    assert _pinned(params, g, bounded).tolist() == [[True, False, True], [False, False, False]]
+    h, g_kept = _pin_bounds(params, torch.ones(2, 3, 3, dtype=torch.float64), g, bounded)
+    assert g_kept[0].tolist() == [0.0, 1.0, 0.0] and torch.equal(g_kept[1], g[1])
+    assert h[0].tolist() == [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    assert torch.equal(h[1], torch.ones(3, 3, dtype=torch.float64))
+    clamped = _clamp_bounded(params * 2, bounded)
+    assert clamped.tolist() == [[BOUND, 18.0, -BOUND], [BOUND, 18.0, 0.0]]
+
+
+def test_an_action_model_says_which_nuisance_is_bounded_or_none_is():
+    """A user's action model without ``nuisance_bounded`` fits every nuisance unbounded; one
+    whose flags do not match its nuisance, or a non-bool ``fit_lapse``, is a clear error."""
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    k = len(model.theta_space.free_names)
+    fitted = censored_action_model(actor, model, lapse=0.01, fit_lapse=True)
+    loss = InverseRationalLoss(model, fitted)
+    assert loss.bounded.tolist() == [True] * k + [False, False, True]
+    plain = censored_action_model(actor, model)
+    del plain.nuisance_bounded  # as a model written without it
+    assert InverseRationalLoss(model, plain).bounded.tolist() == [True] * k + [False, False]
+    plain.nuisance_bounded = (False,)
+    with pytest.raises(ValueError, match=r"nuisance_bounded: expected one flag per nuisance"):
+        InverseRationalLoss(model, plain)
+    with pytest.raises(TypeError, match=r"fit_lapse: expected a bool, got 2"):
+        censored_action_model(actor, model, lapse=0.01, fit_lapse=2)

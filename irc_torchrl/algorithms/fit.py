@@ -55,8 +55,8 @@ INTERVALS = ("wald", "profile")
 
 #: the largest move of one Newton step in any unconstrained coordinate
 MAX_STEP = 1.5
-#: the unconstrained coordinate at which a free θ counts as on its bound (θ within
-#: ``1/(1+e^BOUND)`` ≈ 0.25% of its range from the bound)
+#: the unconstrained coordinate at which a free θ (or a fitted lapse rate) counts as on its
+#: bound (θ within ``1/(1+e^BOUND)`` ≈ 0.25% of its range from the bound)
 BOUND = 6.0
 #: iterations without a gain of ``tol`` after which a row whose model promises less than
 #: ``SWITCH`` nats has converged (a flat top, e.g. θ̂ on a bound)
@@ -98,13 +98,20 @@ class FitResult:
             information=self.information[rows],
         )
 
-    def nuisance_std(self) -> torch.Tensor:
-        """Standard deviations ``[n_agents, dn]`` of the nuisance coordinates (the fit's
-        units) from the observed information; ``inf`` where it does not bound them."""
+    def nuisance_intervals(self, bounded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """95% Wald intervals of the nuisance coordinates in the fit's units, ``[n_agents, dn]``
+        each, from the observed information (infinite where it does not bound them). A
+        ``bounded`` coordinate (``[dn]``) held on its bound reaches past it (±inf) on that
+        side: the fit cannot tell how far."""
         cov, unbounded = observed_covariance(self.information)
         dn = self.nuisance.shape[-1]
         sd = cov.diagonal(dim1=-2, dim2=-1)[:, -dn:].clamp_min(0).sqrt()
-        return torch.where(unbounded[:, -dn:], torch.full_like(sd, torch.inf), sd)
+        reach = torch.where(unbounded[:, -dn:], torch.full_like(sd, torch.inf), Z95 * sd)
+        held = bounded.to(sd.device) & (self.nuisance.abs() >= BOUND - 1e-9)
+        low, high = self.nuisance - reach, self.nuisance + reach
+        low = torch.where(held & (self.nuisance < 0), -torch.inf, low)
+        high = torch.where(held & (self.nuisance > 0), torch.inf, high)
+        return low, high
 
     def agent(self, i: int) -> dict:
         """One agent's result as plain Python values (the ``summary.json`` entry)."""
@@ -391,7 +398,7 @@ def expected_intervals(
             f"nuisance: expected shape [{n_agents}, {init.numel()}], got {list(nuisance.shape)}"
         )
     if not torch.isfinite(nuisance).all():
-        raise ValueError("nuisance: expected finite values (log-scales), got NaN or inf")
+        raise ValueError("nuisance: expected finite values (the fit's coordinates), got NaN or inf")
     k = int(space.free_mask.sum())
     theta_free = space.to_unconstrained(theta.detach().double().to(device))[:, space.free_mask]
     params = torch.cat([theta_free, nuisance.detach().double().to(device)], -1)
@@ -805,6 +812,8 @@ def _screen_starts(
         own = space.to_unconstrained(starts.cpu())[:, free].to(device).unsqueeze(1)
         candidates = torch.cat([candidates, own], 1)
     nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1).to(device)
+    # a bounded nuisance (a fitted lapse rate) starts within the fit's bounds
+    nuisance = _clamp_bounded(nuisance, loss.bounded.to(device)[int(free.sum()) :])
     # every (agent, candidate) pair is a row; rows are scored a chunk at a time
     n_candidates = candidates.shape[1]
     pairs = (

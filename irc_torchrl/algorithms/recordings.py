@@ -44,7 +44,7 @@ from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
-from irc_torchrl.objectives.fisher import Z95, Intervals
+from irc_torchrl.objectives.fisher import Intervals
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.plots import report_run
 from irc_torchrl.theta import ThetaSpace
@@ -493,10 +493,10 @@ def _scored(
         scored = {"agents": [result.agent(i) for i in range(len(paths))]}
     noise = action_model.motor_noise(result.nuisance)
     lapse = action_model.lapse_rate(result.nuisance)
-    if action_model.fit_lapse:
-        # the interval of the lapse logit, mapped to the rate (within its (0, LAPSE_MAX))
-        reach = Z95 * result.nuisance_std()
-        lapse_ci = [action_model.lapse_rate(result.nuisance + s * reach) for s in (-1, 1)]
+    # the fit's intervals of the nuisance coordinates, mapped to motor noise and lapse rate
+    ends = result.nuisance_intervals(torch.tensor(action_model.nuisance_bounded))
+    noise_ci = [action_model.motor_noise(end) for end in ends]
+    lapse_ci = [action_model.lapse_rate(end) for end in ends]
     for i, agent in enumerate(scored["agents"]):
         agent.pop("nuisance", None)
         agent.update(
@@ -505,10 +505,11 @@ def _scored(
             n_trials=int(recordings[i].shape[0]),
             n_steps=int(recordings[i]["mask"].sum()),
             motor_noise=[float(v) for v in noise[i]],
+            motor_noise_ci=[[float(end[i, j]) for end in noise_ci] for j in range(noise.shape[1])],
             lapse=float(lapse[i]),
         )
         if action_model.fit_lapse:
-            agent["lapse_ci"] = [float(lapse_ci[0][i]), float(lapse_ci[1][i])]
+            agent["lapse_ci"] = [float(end[i]) for end in lapse_ci]
         if checks[i] is not None:
             agent["particle_check"] = checks[i]
     return scored

@@ -84,7 +84,7 @@ class Recovery2DConfig:
     #: the agents' motor-noise standard deviation (fitted as a nuisance, per action dimension)
     motor_noise: float = 0.1
     #: how often each action dimension lapses (is unrelated to the belief), for the simulated
-    #: agents and in the fitted action model alike (0: never)
+    #: agents and, unless ``fit_lapse``, in the fitted action model alike (0: never)
     lapse: float = 0.0
     #: fit each agent's lapse rate beside its motor noise (from ``FIT_LAPSE_START``, whatever
     #: the agents' rate) instead of holding ``lapse``

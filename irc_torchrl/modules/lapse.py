@@ -28,9 +28,12 @@ class Lapse(TensorDictModuleBase):
     ) -> None:
         super().__init__()
         # kept on the CPU, where the draws are made (not a buffer: ``.to`` leaves it there)
-        self.lapse = torch.as_tensor(lapse, dtype=torch.float32, device="cpu").detach().cpu()
-        if not ((self.lapse >= 0) & (self.lapse < 1)).all():
-            raise ValueError(f"lapse: expected probabilities in [0, 1), got {lapse}")
+        self.lapse = torch.as_tensor(lapse, dtype=torch.float32, device="cpu").detach()
+        bad = ~((self.lapse >= 0) & (self.lapse < 1))
+        if bad.any():
+            raise ValueError(
+                f"lapse: expected probabilities in [0, 1), got {self.lapse[bad][0].item():g}"
+            )
         self.action_key = action_key
         self.in_keys, self.out_keys = [action_key], [action_key]
         space = getattr(spec, "space", None)
@@ -42,6 +45,15 @@ class Lapse(TensorDictModuleBase):
         if not self.lapse.any() or exploration_type() not in (ExplorationType.RANDOM, None):
             return tensordict
         action = tensordict.get(self.action_key)
+        try:
+            fits = torch.broadcast_shapes(self.lapse.shape, action.shape) == action.shape
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"lapse: expected rates broadcasting against the action {list(action.shape)}, "
+                f"got shape {list(self.lapse.shape)}"
+            )
         lapsed = torch.rand(action.shape, device="cpu") < self.lapse
         width = self.high - self.low
         draw = self.low - width / 2 + 2 * width * torch.rand(action.shape, device="cpu")

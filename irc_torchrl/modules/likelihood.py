@@ -75,7 +75,12 @@ def gaussian_log_prob_of_draw(
     draw = draw.detach()
     logp = -0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)
     if lapse is not None:
-        logp = torch.logaddexp(logp + log_keep, log_lapse - torch.log(2 * width))
+        # the lapse's density is 1/(2 width) on its support only: a Gaussian draw beyond it
+        # (a wide predictive at a bound) is scored by the Gaussian alone, so the score's
+        # mean stays zero
+        inside = (draw >= low - width / 2) & (draw <= high + width / 2)
+        uniform = torch.where(inside, log_lapse - torch.log(2 * width), -torch.inf)
+        logp = torch.logaddexp(logp + log_keep, uniform)
     return _scored_sum(logp, scored)
 
 
@@ -146,7 +151,7 @@ class CensoredGaussianActionModel(nn.Module):
     A recorded action strictly inside the bounds contributes the Gaussian density; one at a
     bound contributes the probability of the noise carrying it past the bound (a censored
     likelihood), since clipping puts a point mass there. The nuisance is the log motor-noise
-    standard deviation per action dimension.
+    standard deviation per action dimension (then the lapse rate's logit, when it is fitted).
 
     With ``lapse`` > 0 each action dimension is, with that probability, unrelated to the
     belief: drawn uniformly over the bounds widened by half their width on each side, then
@@ -179,6 +184,8 @@ class CensoredGaussianActionModel(nn.Module):
         super().__init__()
         if not 0 <= lapse < 1:
             raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
+        if not isinstance(fit_lapse, bool):
+            raise TypeError(f"fit_lapse: expected a bool, got {fit_lapse!r}")
         if fit_lapse and not 0 < lapse < LAPSE_MAX:
             raise ValueError(
                 f"lapse: expected the fitted rate's start in (0, {LAPSE_MAX}), got {lapse}"
@@ -303,7 +310,8 @@ class CensoredGaussianActionModel(nn.Module):
             cov_action: its covariance, ``[*B, da, da]``.
             cov: the covariance of ``z``, ``[*B, dz, dz]``.
             action: the recorded action, ``[*B, da]``.
-            nuisance: log motor-noise standard deviations, ``[*B, da]``.
+            nuisance: ``[*B, dn]``: log motor-noise standard deviations, then
+                ``logit_lapse`` when the rate is fitted.
             scored: which action dimensions to score and condition on, ``[*B, da]``; all
                 when ``None``.
 

@@ -110,6 +110,15 @@ class InverseRationalLoss(LossModule):
         self.nuisance = nn.Parameter(
             action_model.nuisance_init.double().expand(n_agents, -1).clone()
         )
+        # which nuisance coordinates the fit holds within bounds (none, unless the model says)
+        dn = action_model.nuisance_init.numel()
+        bounded = tuple(getattr(action_model, "nuisance_bounded", (False,) * dn))
+        if len(bounded) != dn:
+            raise ValueError(
+                f"nuisance_bounded: expected one flag per nuisance parameter ({dn}), "
+                f"got {len(bounded)}"
+            )
+        self._nuisance_bounded = bounded
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: the objective is a likelihood, not a TD target."""
@@ -124,7 +133,7 @@ class InverseRationalLoss(LossModule):
         """Which fitted coordinates are bounded logits, ``[p]``: every free θ, and the
         nuisance parameters the action model bounds (a fitted lapse rate)."""
         k = int(self.theta_space.free_mask.sum())
-        flags = [True] * k + list(self.action_model.nuisance_bounded)
+        flags = [True] * k + [bool(b) for b in self._nuisance_bounded]
         return torch.tensor(flags, device=self.theta_free.device)
 
     def theta(self, theta_free: torch.Tensor | None = None) -> torch.Tensor:

@@ -82,7 +82,8 @@ def marginal_filter(
     Args:
         theta: the agent's θ, ``[*B, d]``; ``task_theta`` the world's (its observation noise
             drives the agent's belief).
-        nuisance: the action model's log motor-noise std, ``[*B, da]``.
+        nuisance: the action model's nuisance, ``[*B, dn]``: log motor-noise stds, then
+            ``logit_lapse`` when the rate is fitted.
         state, action: recorded, ``[*B, T, ds]`` and ``[*B, T, da]``.
         target: ``[*B, dt]``.
         mask: the recorded steps ``[*B, T]``; a trial is filtered up to its last recorded step
