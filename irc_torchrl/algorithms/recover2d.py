@@ -38,7 +38,13 @@ from irc_torchrl.algorithms.fit import FitResult, expected_intervals, fit_theta,
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
-from irc_torchrl.config import FitConfig, _one_of, _probability, config_to_dict
+from irc_torchrl.config import (
+    FitConfig,
+    RecordingFitConfig,
+    _one_of,
+    _probability,
+    config_to_dict,
+)
 from irc_torchrl.data.files import atomic_dir, write_json, write_text
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
@@ -59,10 +65,6 @@ __all__ = [
 
 #: the held-trial fields an experimenter records (no θ, no belief)
 RECORDED = ("state", "action", "target", "mask", "task_theta")
-
-
-#: where a fitted lapse rate starts (``irc fit``'s default): not the agents' own rate
-FIT_LAPSE_START = 0.01
 
 
 @dataclass
@@ -86,8 +88,8 @@ class Recovery2DConfig:
     #: how often each action dimension lapses (is unrelated to the belief), for the simulated
     #: agents and, unless ``fit_lapse``, in the fitted action model alike (0: never)
     lapse: float = 0.0
-    #: fit each agent's lapse rate beside its motor noise (from ``FIT_LAPSE_START``, whatever
-    #: the agents' rate) instead of holding ``lapse``
+    #: fit each agent's lapse rate beside its motor noise (from ``irc fit``'s default start,
+    #: whatever the agents' rate) instead of holding ``lapse``
     fit_lapse: bool = False
     #: comma-separated estimators; when both run, ``marginal`` starts from the ``fit.n_starts``
     #: most likely (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
@@ -226,8 +228,8 @@ def _recovery_action_model(
     config: Recovery2DConfig, actor, model: Firefly2DModel
 ) -> CensoredGaussianActionModel:
     """The action model the recovery fits with: the agents' lapse rate held, or with
-    ``fit_lapse`` fitted from ``FIT_LAPSE_START``."""
-    lapse = FIT_LAPSE_START if config.fit_lapse else config.lapse
+    ``fit_lapse`` fitted from where ``irc fit`` starts it (not the agents' own rate)."""
+    lapse = RecordingFitConfig.lapse if config.fit_lapse else config.lapse
     return censored_action_model(
         actor, model, config.actor_dtype, config.motor_noise, lapse, config.fit_lapse
     )
