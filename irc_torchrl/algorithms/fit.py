@@ -107,7 +107,7 @@ class FitResult:
         dn = self.nuisance.shape[-1]
         sd = cov.diagonal(dim1=-2, dim2=-1)[:, -dn:].clamp_min(0).sqrt()
         reach = torch.where(unbounded[:, -dn:], torch.full_like(sd, torch.inf), Z95 * sd)
-        held = bounded.to(sd.device) & (self.nuisance.abs() >= BOUND - 1e-9)
+        held = bounded.to(sd.device) & _on_bound(self.nuisance)
         low, high = self.nuisance - reach, self.nuisance + reach
         low = torch.where(held & (self.nuisance < 0), -torch.inf, low)
         high = torch.where(held & (self.nuisance > 0), torch.inf, high)
@@ -497,7 +497,7 @@ def profile_intervals(
         c = x[i, j]
         gap = f - target[active]
         settled = decrement < tol
-        on_bound = c.abs() >= BOUND - 1e-9
+        on_bound = _on_bound(c)
         # converged: on target, or short of it at the bound of θ (the interval ends there)
         reached = settled & ((gap.abs() < tol) | (on_bound & (gap < 0)))
         found[active[reached]] = done[active[reached]] = True
@@ -547,7 +547,7 @@ def profile_intervals(
         done[active] |= damping[active] >= 1e9
     endpoint = point[rows, which]
     # a side that ends on the bound of θ ends on the bound itself, not BOUND's 0.25% short of it
-    endpoint = torch.where(endpoint.abs() >= BOUND - 1e-9, endpoint.sign() * 40, endpoint)
+    endpoint = torch.where(_on_bound(endpoint), endpoint.sign() * 40, endpoint)
     endpoint = endpoint.view(n_agents, n_named, 2)
     columns = free.nonzero().squeeze(-1)[chosen.to(device)]
     u = torch.zeros(n_agents, 2, space.dim, dtype=centre.dtype, device=centre.device)
@@ -641,6 +641,11 @@ def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) ->
     return value - reached.repeat_interleave(n_starts)
 
 
+def _on_bound(u: torch.Tensor) -> torch.Tensor:
+    """Where unconstrained coordinates sit on the fit's bound, ``±BOUND`` (to round-off)."""
+    return u.abs() >= BOUND - 1e-9
+
+
 def _clamp_bounded(params: torch.Tensor, bounded: torch.Tensor) -> torch.Tensor:
     """``params [n, p]`` with the ``bounded`` coordinates ``[p]`` held within ``±BOUND``."""
     return torch.where(bounded, params.clamp(-BOUND, BOUND), params)
@@ -666,7 +671,7 @@ def _pin_bounds(
 def _pinned(params: torch.Tensor, g: torch.Tensor, bounded: torch.Tensor) -> torch.Tensor:
     """The ``bounded`` coordinates (``[p]``) on a bound whose descent direction points further
     out, ``[n, p]``."""
-    return bounded & (params.abs() >= BOUND - 1e-9) & (params * g < 0)
+    return bounded & _on_bound(params) & (params * g < 0)
 
 
 def _absolute(h: torch.Tensor) -> torch.Tensor:
