@@ -5,10 +5,12 @@ wall time of one batched call over K agents and of K single-agent calls on the s
 their ratio, each single agent's time (the 2D goal: one agent, 100 trials, ≤ 30 s), and how
 far apart the θ̂ of both are (the 2D fit's Fisher-scoring phase draws its samples per call,
 so there the paths differ and θ̂ agree to the fit's tolerance, not bit for bit). The 2D fit
-runs with ``irc recover``'s settings (``--max-iter 80`` for its iteration limit).
+runs with ``irc recover``'s settings (``--max-iter 80`` for its iteration limit). With
+``--workers W`` > 1 the batched call is also timed with its agents shared among W processes
+(``fit_theta(workers=W)``), beside the one-process call.
 
 Run: ``python benchmarks/bench_fit.py [--task firefly1d|firefly2d] [--method map|marginal]
-[--agents 20] [--trials 100] [--max-iter 40] [--actor-dtype float32|float64]``.
+[--agents 20] [--trials 100] [--max-iter 40] [--actor-dtype float32|float64] [--workers 2]``.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ def main() -> None:
     parser.add_argument("--max-iter", type=int, default=40)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--actor-dtype", choices=sorted(ACTOR_DTYPES), default="float32")
+    parser.add_argument("--workers", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     model, policy, action_model, settings = _task(args.task, args.actor_dtype)
@@ -59,13 +62,17 @@ def main() -> None:
     trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
     trials = trials.select("state", "action", "target", "mask", "task_theta")
 
-    def fit(rows):
+    def fit(rows, workers=1):
         loss = InverseRationalLoss(model, action_model, n_agents=rows.shape[0], method=args.method)
-        return fit_theta(loss, rows, max_iter=args.max_iter, seed=0, **settings)
+        return fit_theta(loss, rows, max_iter=args.max_iter, seed=0, workers=workers, **settings)
 
     start = time.perf_counter()
     batched = fit(trials)
     batched_s = time.perf_counter() - start
+    if args.workers > 1:
+        start = time.perf_counter()
+        shared = fit(trials, args.workers)
+        shared_s = time.perf_counter() - start
     single, alone_s = [], []
     for i in range(args.agents):
         start = time.perf_counter()
@@ -82,6 +89,10 @@ def main() -> None:
     print(f"batched: one call      {batched_s:8.1f} s")
     print(f"sequential: {args.agents} calls  {sequential_s:8.1f} s")
     print(f"speed-up batched/sequential: {sequential_s / batched_s:.1f}×")
+    if args.workers > 1:
+        print(f"batched: one call, {args.workers} processes {shared_s:8.1f} s")
+        ratio = sequential_s / shared_s
+        print(f"speed-up batched in {args.workers} processes/sequential: {ratio:.1f}×")
     times = sorted(alone_s)
     print(
         f"one agent alone: median {statistics.median(times):.1f} s, fastest {times[0]:.1f} s, "
@@ -92,6 +103,10 @@ def main() -> None:
     alone = torch.cat([r.converged for r in single]).double().mean().item()
     together = batched.converged.double().mean().item()
     print(f"converged: batched {together:.0%}, sequential {alone:.0%}")
+    if args.workers > 1:
+        print(
+            f"converged: batched in {args.workers} processes {shared.converged.double().mean():.0%}"
+        )
 
 
 if __name__ == "__main__":

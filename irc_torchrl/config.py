@@ -72,9 +72,12 @@ class FitConfig:
     covariance: str = "hessian"
     #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
     intervals: str = "wald"
+    #: processes the agents are shared among (CPU; the numbers depend on it, not on the machine)
+    workers: int = 1
 
     def validate(self) -> FitConfig:
         """Return ``self`` if the method names are known, else a one-line error naming them."""
+        _positive(**{"fit.workers": self.workers})
         _one_of("fit.curvature", self.curvature, CURVATURES)
         _one_of("fit.covariance", self.covariance, COVARIANCES)
         _one_of("fit.intervals", self.intervals, INTERVALS)
@@ -202,6 +205,8 @@ class RecordingFitConfig:
     units: dict = field(default_factory=dict)
     #: torch threads (small networks run fastest on one)
     threads: int = 1
+    #: processes the recordings are shared among (see ``fit.workers`` of ``irc recover``)
+    workers: int = 1
 
     def validate(self) -> RecordingFitConfig:
         """Return ``self`` if every number is usable, else raise a one-line error naming it."""
@@ -211,6 +216,7 @@ class RecordingFitConfig:
             max_iter=self.max_iter,
             motor_noise=self.motor_noise,
             threads=self.threads,
+            workers=self.workers,
             components=self.components,
         )
         for name in ("particles", "calibrate"):

@@ -53,6 +53,8 @@ def test_overrides_reach_nested_fields_with_types():
         ("agents.temperature=-1", "agents.temperature must be positive, got -1.0"),
         ("q_iteration.n_envs=-4", "q_iteration.n_envs must be positive, got -4"),
         ("q_iteration.gamma=1.5", r"q_iteration.gamma must lie in \(0, 1\]"),
+        ("fit.workers=0", "fit.workers must be positive, got 0"),
+        ("fit.workers=1.5", "fit.workers=1.5 is not a valid int"),
         ("agents.n_trials=[1", "override 'agents.n_trials=\\[1' is not valid YAML"),
     ],
 )
@@ -114,3 +116,14 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
     assert written["seed"] == 3 and written["agents"]["n_agents"] == 3
     for figure in ("q_function.png", "recovery.png", "dp_comparison.png"):
         assert (tmp_path / "a" / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_worker_processes_are_refused_off_the_cpu():
+    """``workers`` > 1 shares a fit between CPU cores: another device is refused by name."""
+    from irc_torchrl.algorithms.runtime import check_workers
+
+    check_workers(1, "cuda:0")
+    check_workers(4, "cpu")
+    with pytest.raises(ValueError, match="workers: processes share a fit between CPU cores; "
+                                         "expected 1 on cuda:0, got 2"):  # fmt: skip
+        check_workers(2, "cuda:0")

@@ -540,3 +540,32 @@ def test_a_fit_taken_in_pieces_equals_the_fit_taken_whole(
             pieces = fit_theta(loss, trials, seed=0, n_screen=8, n_starts=2, curvature=curvature)
         torch.testing.assert_close(pieces.theta_hat, whole.theta_hat)
         torch.testing.assert_close(pieces.intervals.std, whole.intervals.std)
+
+
+def test_a_fit_in_worker_processes_equals_its_shards_fitted_in_turn(
+    firefly1d_model, trained_q, space
+):
+    """``workers=2`` fits contiguous shards of the agents in two processes: the same numbers
+    as fitting each shard here, one after the other, and progress reported once per
+    iteration of the slowest shard."""
+    _, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1, n_agents=3)
+    loss = make_loss(firefly1d_model, trained_q, 3)
+    calls = []
+    sharded = fit_theta(
+        loss, trials, seed=0, n_screen=8, n_starts=2, workers=2,
+        progress=lambda i, n: calls.append((i, n)),
+    )  # fmt: skip
+    parts = [fit_theta(loss, trials[rows], seed=0, n_screen=8, n_starts=2)
+             for rows in (slice(0, 2), slice(2, 3))]  # fmt: skip
+    for name in ("theta_hat", "nuisance", "log_likelihood", "converged", "information"):
+        assert torch.equal(getattr(sharded, name), torch.cat([getattr(p, name) for p in parts]))
+    assert torch.equal(sharded.intervals.std, torch.cat([p.intervals.std for p in parts]))
+    assert sharded.iterations == max(p.iterations for p in parts)
+    assert calls == [(i, 40) for i in range(1, sharded.iterations + 1)]
+
+
+@pytest.mark.parametrize("workers", [0, 1.5, True])
+def test_fit_rejects_a_bad_worker_count(firefly1d_model, trained_q, small_trials, workers):
+    loss = make_loss(firefly1d_model, trained_q, 3)
+    with pytest.raises((TypeError, ValueError), match="workers: expected an integer"):
+        fit_theta(loss, small_trials, workers=workers)

@@ -16,12 +16,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from queue import Empty
 
 import torch
 from tensordict import TensorDictBase
 
+from irc_torchrl.algorithms.runtime import check_workers, flushing_denormals
 from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import (
     Z95,
@@ -98,6 +102,17 @@ class FitResult:
             information=self.information[rows],
         )
 
+    @staticmethod
+    def cat(parts: Sequence[FitResult]) -> FitResult:
+        """The agents of ``parts`` (fits of disjoint agents, in order) as one result."""
+        tensors = ("theta_hat", "nuisance", "log_likelihood", "converged", "information")
+        return dataclasses.replace(
+            parts[0],
+            **{name: torch.cat([getattr(p, name) for p in parts]) for name in tensors},
+            intervals=Intervals.cat([p.intervals for p in parts]),
+            iterations=max(p.iterations for p in parts),
+        )
+
     def nuisance_intervals(self, bounded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """95% Wald intervals of the nuisance coordinates in the fit's units, ``[n_agents, dn]``
         each, from the observed information (infinite where it does not bound them). A
@@ -148,6 +163,7 @@ def fit_theta(
     covariance: str = "hessian",
     intervals: str = "wald",
     progress: Callable[[int, int], None] | None = None,
+    workers: int = 1,
 ) -> FitResult:
     """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``).
 
@@ -164,7 +180,11 @@ def fit_theta(
     log-likelihood and whether each fit converged. ``covariance="sandwich"`` widens the
     intervals by how much more the trials' scores vary than the curvature says (they agree
     when the likelihood is exact). ``intervals="profile"`` replaces the endpoints by the
-    profile likelihood's (:func:`profile_intervals`).
+    profile likelihood's (:func:`profile_intervals`). ``workers`` > 1 splits the agents into
+    that many shards fitted in parallel processes on the CPU, each with its share of torch's
+    threads: the iterations' many small operations keep one process's threads mostly idle,
+    so processes use the cores better. The numbers depend on ``workers`` (each shard draws
+    its own Fisher-scoring samples), not on the machine.
     """
     if curvature not in CURVATURES:
         raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
@@ -186,7 +206,7 @@ def fit_theta(
                 f"got {list(starts.shape)}"
             )
     _check_iterations(max_iter, tol)
-    for name, value in (("n_screen", n_screen), ("n_starts", n_starts)):
+    for name, value in (("n_screen", n_screen), ("n_starts", n_starts), ("workers", workers)):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TypeError(f"{name}: expected an integer, got {value!r}")
     if n_screen < (0 if starts is not None else 1) or n_starts < 1:
@@ -194,6 +214,16 @@ def fit_theta(
             f"n_screen, n_starts: expected n_starts ≥ 1 and n_screen ≥ 1 (≥ 0 with starts), "
             f"got {n_screen}, {n_starts}"
         )
+    if workers < 1:
+        raise ValueError(f"workers: expected an integer ≥ 1, got {workers}")
+    check_workers(workers, device)
+    if min(workers, n_agents) > 1:
+        settings = {
+            "n_starts": n_starts, "n_screen": n_screen, "max_iter": max_iter, "tol": tol,
+            "seed": seed, "curvature": curvature, "covariance": covariance,
+            "intervals": intervals,
+        }  # fmt: skip
+        return _fit_in_processes(loss, trials, starts, min(workers, n_agents), settings, progress)
     params = _screen_starts(loss, trials, n_screen, n_starts, seed, starts)
     n_starts = params.shape[0] // n_agents
     rows = (
@@ -591,6 +621,78 @@ def particle_check(
         "approximation_gap": particle - approximate,
         "min_effective_particles": ess.amin(1),
     }
+
+
+def _fit_in_processes(
+    loss: InverseRationalLoss,
+    trials: TensorDictBase,
+    starts: torch.Tensor | None,
+    workers: int,
+    settings: dict,
+    progress: Callable[[int, int], None] | None,
+) -> FitResult:
+    """:func:`fit_theta` of ``workers`` contiguous shards of the agents, each in a process of
+    its own; ``progress`` follows the shard furthest behind."""
+    shards = torch.arange(trials.shape[0]).tensor_split(workers)
+    context = multiprocessing.get_context("spawn")  # fork is unsafe once torch's threads run
+    reports = context.Queue()
+    setup = (max(1, torch.get_num_threads() // workers), flushing_denormals(), reports)
+    reached, reported = [0] * workers, 0
+    with ProcessPoolExecutor(
+        workers, mp_context=context, initializer=_start_worker, initargs=setup
+    ) as pool:
+        report = progress is not None
+        futures = [
+            pool.submit(_fit_shard, i, loss, trials[rows], _rows_of(starts, rows), settings, report)
+            for i, rows in enumerate(shards)
+        ]
+        while not all(f.done() for f in futures):
+            try:
+                shard, iteration = reports.get(timeout=0.5)
+                reached[shard] = iteration
+            except Empty:
+                pass
+            running = [reached[i] for i, f in enumerate(futures) if not f.done()]
+            if progress is not None and running:
+                for iteration in range(reported + 1, min(running) + 1):
+                    progress(iteration, settings["max_iter"])
+                reported = max(reported, min(running))
+        result = FitResult.cat([f.result() for f in futures])
+    if progress is not None:
+        for iteration in range(reported + 1, result.iterations + 1):
+            progress(iteration, settings["max_iter"])
+    return result
+
+
+def _rows_of(starts: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | None:
+    """The starts of a shard's agents (none where none were given)."""
+    return None if starts is None else starts[rows]
+
+
+#: where a worker process of :func:`_fit_in_processes` reports its iterations
+_REPORTS = None
+
+
+def _start_worker(threads: int, flush_denormal: bool, reports) -> None:
+    """Set up a worker process: its share of the threads, its parent's denormal flushing and
+    the queue its progress goes to."""
+    global _REPORTS
+    torch.set_num_threads(threads)
+    torch.set_flush_denormal(flush_denormal)
+    _REPORTS = reports
+
+
+def _fit_shard(
+    shard: int,
+    loss: InverseRationalLoss,
+    trials: TensorDictBase,
+    starts: torch.Tensor | None,
+    settings: dict,
+    report: bool,
+) -> FitResult:
+    """One shard's :func:`fit_theta` in a worker process, reporting each iteration."""
+    progress = (lambda i, _: _REPORTS.put((shard, i))) if report else None
+    return fit_theta(loss, trials, starts=starts, progress=progress, **settings)
 
 
 def _held_step(

@@ -35,7 +35,7 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
-from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
+from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import atomic_path, write_json
@@ -266,6 +266,7 @@ def fit_recordings(
         raise ValueError("fit: no recording given")
     config.validate()
     target = resolve_device(device)
+    check_workers(config.workers, target)
     paths = [Path(p) for p in paths]
     out = Path(out)
     with torch_settings(config.threads, True):
@@ -388,6 +389,7 @@ def _fit_groups(
                     intervals=config.intervals,
                     starts=starts,
                     progress=lambda i, n: bar.update(1),
+                    workers=config.workers,
                 )
             starts = result.theta_hat
             parts[name].append((members, result))

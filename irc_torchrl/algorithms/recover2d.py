@@ -36,7 +36,7 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, expected_intervals, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
-from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
+from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import (
     FitConfig,
@@ -145,7 +145,7 @@ class Recovery2DConfig:
         _probability(lapse=self.lapse)
         self.fit.validate()
         _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
-        resolve_device(self.device)
+        check_workers(self.fit.workers, resolve_device(self.device))
         _one_of("calibration_tail", self.calibration_tail, TAILS)
         unknown = [m for m in self.method_list if m not in METHODS]
         if unknown or not self.method_list:
@@ -371,6 +371,7 @@ def _fit_methods(
             starts=fitted["map"].result.theta_hat if "map" in fitted else None,
             seed=config.seed + 2,
             progress=None if progress is None else partial(progress, method + label),
+            workers=config.fit.workers,
         )
         fitted[method] = _Fitted(loss, result, time.perf_counter() - begin)
     return fitted

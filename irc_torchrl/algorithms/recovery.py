@@ -61,6 +61,7 @@ def recover_agents(
         intervals=fit.intervals,
         seed=seed + 2,
         progress=progress,
+        workers=fit.workers,
     )
     summary = score_recovery(space.free_names, space.names, theta_true, result)
     summary["timings"] = {"simulate_s": simulated - start, "fit_s": time.perf_counter() - simulated}

@@ -7,7 +7,7 @@ from contextlib import contextmanager
 
 import torch
 
-__all__ = ["resolve_device", "torch_settings"]
+__all__ = ["check_workers", "flushing_denormals", "resolve_device", "torch_settings"]
 
 
 @contextmanager
@@ -46,3 +46,18 @@ def resolve_device(name: str) -> torch.device:
             "torch); expected 'cpu' or an available accelerator"
         ) from None
     return device
+
+
+def flushing_denormals() -> bool:
+    """Whether this process flushes denormal floats to zero (torch has no getter: a denormal
+    doubled reads zero only then), so worker processes can run as their parent does."""
+    return bool(torch.tensor(1e-310, dtype=torch.float64) * 2 == 0)
+
+
+def check_workers(workers: int, device: torch.device | str) -> None:
+    """Refuse more than one worker process off the CPU: workers share a fit between cores."""
+    if workers > 1 and torch.device(device).type != "cpu":
+        raise ValueError(
+            f"workers: processes share a fit between CPU cores; expected 1 on {device}, "
+            f"got {workers}"
+        )

@@ -11,7 +11,7 @@ one that loads on a direction of zero or negative curvature (e.g. θ̂ on a boun
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -66,6 +66,13 @@ class Intervals:
     def select(self, rows: torch.Tensor) -> Intervals:
         """The agents ``rows`` (an index or mask)."""
         return Intervals(*(getattr(self, f.name)[rows] for f in dataclasses.fields(self)))
+
+    @staticmethod
+    def cat(parts: Sequence[Intervals]) -> Intervals:
+        """The agents of ``parts``, in order, as one batch."""
+        return Intervals(
+            *(torch.cat([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(Intervals))
+        )
 
 
 def observed_covariance(hessian: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
