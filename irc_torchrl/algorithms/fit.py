@@ -183,7 +183,8 @@ def fit_theta(
     profile likelihood's (:func:`profile_intervals`). ``workers`` > 1 splits the agents into
     that many shards fitted in parallel processes on the CPU, each with its share of torch's
     threads: the iterations' many small operations keep one process's threads mostly idle,
-    so processes use the cores better. The numbers depend on ``workers`` (each shard draws
+    so processes use the cores better (they are spawned: a script calling this needs the
+    ``if __name__ == "__main__":`` guard). The numbers depend on ``workers`` (each shard draws
     its own Fisher-scoring samples), not on the machine.
     """
     if curvature not in CURVATURES:
