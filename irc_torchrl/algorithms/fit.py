@@ -639,10 +639,18 @@ def _fit_in_processes(
     reports = context.Queue()
     setup = (max(1, torch.get_num_threads() // workers), flushing_denormals(), reports)
     reached, reported = [0] * workers, 0
+
+    def advance(upto: int) -> None:
+        """Report the iterations up to ``upto`` not yet reported."""
+        nonlocal reported
+        for iteration in range(reported + 1, upto + 1):
+            progress(iteration, settings["max_iter"])
+        reported = max(reported, upto)
+
+    report = progress is not None
     with ProcessPoolExecutor(
         workers, mp_context=context, initializer=_start_worker, initargs=setup
     ) as pool:
-        report = progress is not None
         futures = [
             pool.submit(_fit_shard, i, loss, trials[rows], _rows_of(starts, rows), settings, report)
             for i, rows in enumerate(shards)
@@ -654,14 +662,11 @@ def _fit_in_processes(
             except Empty:
                 pass
             running = [reached[i] for i, f in enumerate(futures) if not f.done()]
-            if progress is not None and running:
-                for iteration in range(reported + 1, min(running) + 1):
-                    progress(iteration, settings["max_iter"])
-                reported = max(reported, min(running))
+            if report and running:
+                advance(min(running))
         result = FitResult.cat([f.result() for f in futures])
-    if progress is not None:
-        for iteration in range(reported + 1, result.iterations + 1):
-            progress(iteration, settings["max_iter"])
+    if report:
+        advance(result.iterations)
     return result
 
 
