@@ -90,25 +90,23 @@ class FitResult:
     #: log-likelihood in the fit's coordinates (unconstrained free θ, then the nuisance)
     information: torch.Tensor
 
+    #: the fields holding one row per agent (besides ``intervals``)
+    _PER_AGENT = ("theta_hat", "nuisance", "log_likelihood", "converged", "information")
+
     def select(self, rows: torch.Tensor) -> FitResult:
         """The agents ``rows`` (an index or mask) of a batched fit."""
         return dataclasses.replace(
             self,
-            theta_hat=self.theta_hat[rows],
-            nuisance=self.nuisance[rows],
-            log_likelihood=self.log_likelihood[rows],
+            **{name: getattr(self, name)[rows] for name in self._PER_AGENT},
             intervals=self.intervals.select(rows),
-            converged=self.converged[rows],
-            information=self.information[rows],
         )
 
     @staticmethod
     def cat(parts: Sequence[FitResult]) -> FitResult:
         """The agents of ``parts`` (fits of disjoint agents, in order) as one result."""
-        tensors = ("theta_hat", "nuisance", "log_likelihood", "converged", "information")
         return dataclasses.replace(
             parts[0],
-            **{name: torch.cat([getattr(p, name) for p in parts]) for name in tensors},
+            **{name: torch.cat([getattr(p, name) for p in parts]) for name in FitResult._PER_AGENT},
             intervals=Intervals.cat([p.intervals for p in parts]),
             iterations=max(p.iterations for p in parts),
         )
