@@ -101,6 +101,14 @@ class FitResult:
             intervals=self.intervals.select(rows),
         )
 
+    def cpu(self) -> FitResult:
+        """This result on the CPU."""
+        return dataclasses.replace(
+            self,
+            **{name: getattr(self, name).cpu() for name in self._PER_AGENT},
+            intervals=self.intervals.cpu(),
+        )
+
     @staticmethod
     def cat(parts: Sequence[FitResult]) -> FitResult:
         """The agents of ``parts`` (fits of disjoint agents, in order) as one result."""

@@ -44,7 +44,6 @@ from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
-from irc_torchrl.objectives.fisher import Intervals
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.plots import report_run
 from irc_torchrl.theta import ThetaSpace
@@ -222,25 +221,6 @@ def _pad_steps(trials: TensorDictBase, steps: int) -> TensorDictBase:
     return torch.cat([trials, tail], 1)
 
 
-def _concat(results: list[FitResult]) -> FitResult:
-    """One :class:`FitResult` over the agents of several fits, in order, on the CPU."""
-    fields = [f.name for f in dataclasses.fields(Intervals)]
-
-    def cat(tensors: list[torch.Tensor]) -> torch.Tensor:
-        return torch.cat([t.cpu() for t in tensors])
-
-    return FitResult(
-        theta_hat=cat([r.theta_hat for r in results]),
-        nuisance=cat([r.nuisance for r in results]),
-        log_likelihood=cat([r.log_likelihood for r in results]),
-        intervals=Intervals(*(cat([getattr(r.intervals, f) for r in results]) for f in fields)),
-        converged=cat([r.converged for r in results]),
-        iterations=max(r.iterations for r in results),
-        names=results[0].names,
-        information=cat([r.information for r in results]),
-    )
-
-
 def fit_recordings(
     paths: Sequence[str | Path],
     out: str | Path,
@@ -410,7 +390,7 @@ def _fit_groups(
     fits = {}
     for name, pieces in parts.items():
         order = [i for members, _ in pieces for i in members]
-        combined = _concat([r for _, r in pieces])
+        combined = FitResult.cat([r.cpu() for _, r in pieces])
         rank = torch.tensor(order).argsort()
         fits[name] = combined.select(rank)
     timings["fit_s"] = sum(v for k, v in timings.items() if k.startswith("fit_"))

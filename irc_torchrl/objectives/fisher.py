@@ -67,6 +67,10 @@ class Intervals:
         """The agents ``rows`` (an index or mask)."""
         return Intervals(*(getattr(self, f.name)[rows] for f in dataclasses.fields(self)))
 
+    def cpu(self) -> Intervals:
+        """These intervals on the CPU."""
+        return Intervals(*(getattr(self, f.name).cpu() for f in dataclasses.fields(self)))
+
     @staticmethod
     def cat(parts: Sequence[Intervals]) -> Intervals:
         """The agents of ``parts``, in order, as one batch."""
