@@ -304,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
             "calibration_tail=own: its own alone). lapse=0.05 makes the agents lapse (an "
             "action dimension unrelated to the belief) and the fit hold that rate; with "
             "fit_lapse=true the fit estimates each agent's rate instead, from 0.01. "
-            "fit.workers=2 shares the agents' fits among 2 processes (CPU; 1.3× faster "
+            "fit.workers=2 shares the agents' fits among 2 processes (CPU; 1.2–1.3× faster "
             "on 2 cores; the numbers depend on the count, not on the machine)."
         ),
     )
