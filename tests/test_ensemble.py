@@ -14,6 +14,7 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from irc_torchrl.algorithms.ensemble import (
     Firefly2DConfig,
+    _policy_report,
     critic_slices,
     evaluate_policy,
     load_ensemble_critic,
@@ -358,6 +359,24 @@ def test_stop_sharpness_measures_how_abruptly_a_policy_stops():
 
     never = stop_sharpness(model, going, grid[:2], trials_per_theta=2, seed=4)
     assert never == {"stopped": 0.0, "a_v_before": None, "a_v_stop": None, "drop": None}
+
+
+@pytest.mark.parametrize(
+    "measure", [evaluate_policy, theta_sensitivity, stop_sharpness, _policy_report]
+)
+def test_greedy_measures_of_a_policy_build_no_autograd_graph(measure):
+    # scoring a policy needs no gradients: its rollouts run under no_grad, so a trainable
+    # actor neither keeps a graph of every step alive nor warns when a mean is read out
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    grad_enabled = []
+
+    def policy(td):
+        grad_enabled.append(torch.is_grad_enabled())
+        return actor(td)
+
+    grid = theta_grid(model.theta_space, 2, seed=3)
+    measure(model, policy, grid, trials_per_theta=2, seed=4)
+    assert grad_enabled and not any(grad_enabled)
 
 
 def test_shipped_critic_values_stopping_on_the_target_and_going_when_it_is_far():

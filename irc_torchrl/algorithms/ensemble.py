@@ -383,6 +383,7 @@ def _sensitivity(
     return change
 
 
+@torch.no_grad()
 def stop_sharpness(
     model: Firefly2DModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
@@ -423,6 +424,7 @@ def _sharpness(
     }
 
 
+@torch.no_grad()
 def _policy_report(
     model: Firefly2DModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
