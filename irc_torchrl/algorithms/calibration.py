@@ -20,7 +20,7 @@ varied by no more than their noise (4.0–7.3 per parameter, the real data's 3.4
 five draws (200 agents, two drawn after the rule was chosen) its calibrated coverage per draw
 and parameter lay inside 0.90–0.98 in 36 of 40 cells, against 33 with each parameter's own
 quantile; with the gated outer update 33 against 32, every parameter inside over the 200
-agents with either (README).
+agents with either (docs/recovery2d.md).
 """
 
 from __future__ import annotations

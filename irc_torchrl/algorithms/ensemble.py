@@ -92,7 +92,7 @@ class DDPGConfig:
     #: 2000 (the default) leave a clone that never stops (0% success on seeds 0-2), so DDPG
     #: discovers the task itself (with pre_activation_weight=0 seed 0 did, 1 and 2 not);
     #: 6000 give a clone at 87-88% (above the controller), which DDPG then drives to stopping
-    #: at once (README, Status)
+    #: at once (docs/benchmarks.md)
     clone_updates: int = 2000
     critic_updates: int = 1000
     #: with the pursuit warm-up: weight of a behaviour-cloning term in the actor's loss
@@ -107,7 +107,7 @@ class DDPGConfig:
     #: ``policy_pre_activation_weight``): it keeps the squashed actions off the flat ends of
     #: tanh, where the critic's gradient no longer moves them. Without it seeds 1 and 2 stay
     #: at 0% success (seed 1's actor with every pre-tanh output beyond ±3); with 0.01 seeds
-    #: 0-6 all discover the task (best 79-85%, README, Benchmarks)
+    #: 0-6 all discover the task (best 79-85%, docs/benchmarks.md)
     pre_activation_weight: float = 0.01
     buffer_size: int = 200_000
     batch_size: int = 512
@@ -122,7 +122,7 @@ class DDPGConfig:
     lr_clone: float = 1e-4
     #: 3e-3 alone lifts seeds 0-2 to 88-89% success (above the pursuit floor) and the
     #: specialist ratios to 0.90-1.02, but that policy's actions turn less on θ and the
-    #: inverse's errors on the noises triple (README, Benchmarks); the shipped policy is 1e-3's
+    #: inverse's errors on the noises triple (docs/benchmarks.md); the shipped policy is 1e-3's
     lr_critic: float = 1e-3
     #: gradient norm clip of each network (0 disables)
     max_grad_norm: float = 10.0
@@ -395,8 +395,8 @@ def stop_sharpness(
     it, over the first trials of :func:`evaluate_policy` (same arguments) that end by a stop.
 
     Algorithm 2 scores a stop by its forward control; a policy that switches from going to
-    stopping within the spread of the agent's belief makes the likelihood a cusp there (README,
-    the 2D recovery). Returns the fraction of trials that stop and the mean ``a_v_before``,
+    stopping within the spread of the agent's belief makes the likelihood a cusp there
+    (docs/recovery2d.md). Returns the fraction of trials that stop and the mean ``a_v_before``,
     ``a_v_stop`` and ``drop`` (their difference); the means are None where no trial stops.
     """
     rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)

@@ -616,7 +616,7 @@ def particle_check(
     loses) and ``min_effective_particles`` the fewest effective particles of any trial (near
     1: too few particles). A gap that differs between θ̂ and nearby θ biases θ̂; on the 2D
     recovery the marginal intervals of agents with a gap under 10 nats at θ̂ covered the
-    truth in 0.82–1.0 of them per parameter, the others' in 0.72–0.93 (README).
+    truth in 0.82–1.0 of them per parameter, the others' in 0.72–0.93 (docs/recovery2d.md).
     """
     theta = theta.to(nuisance.dtype)
     with torch.no_grad():
