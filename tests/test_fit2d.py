@@ -7,12 +7,14 @@ import itertools
 
 import pytest
 import torch
+from scipy.stats import chi2
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import expected_intervals, fit_theta
 from irc_torchrl.algorithms.recover2d import (
     RECORDED,
     Recovery2DConfig,
+    format_recovery,
     recover_firefly2d,
     simulate_recovery_agents,
 )
@@ -57,6 +59,28 @@ def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, 
         with torch.no_grad():
             at_truth = loss.log_likelihood(truth, motor, held)
         assert (result.log_likelihood >= at_truth - 1e-6).all(), method
+
+
+def test_the_truth_check_scores_the_truth_under_the_fitted_likelihood(recovery, shipped):
+    # log L(θ̂) − log L(θ*) per agent, both at θ̂'s nuisance, as recomputed here; no fit ends
+    # below the truth (each θ̂ maximises its own likelihood), and an exact likelihood's median
+    # ratio is half the χ² median with 10 degrees of freedom (8 θ components, 2 motor noises)
+    trials, summary, fits = recovery
+    actor, model, _ = shipped
+    action_model = censored_action_model(actor, model, Recovery2DConfig(**SMALL).actor_dtype)
+    truth = trials["theta"][:, 0, 0].double()
+    for method, result in fits.items():
+        loss = InverseRationalLoss(model, action_model, n_agents=truth.shape[0], method=method)
+        with torch.no_grad():
+            at_truth = loss.log_likelihood(truth, result.nuisance, trials.select(*RECORDED))
+        entry = summary["methods"][method]
+        ratio = torch.tensor([a["log_likelihood_ratio"] for a in entry["agents"]])
+        torch.testing.assert_close(ratio.double(), result.log_likelihood - at_truth)
+        check = entry["truth_check"]
+        assert check["below_truth"] == 0, method
+        assert check["median_log_likelihood_ratio"] == pytest.approx(float(ratio.median()))
+        assert check["expected_median"] == pytest.approx(chi2.median(10) / 2)
+    assert "0 fit(s) ended below θ*" in format_recovery(summary)
 
 
 def test_gains_and_motor_noise_are_recovered_by_the_marginal_estimator(recovery):

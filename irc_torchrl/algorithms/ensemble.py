@@ -128,8 +128,9 @@ class DDPGConfig:
     max_grad_norm: float = 10.0
     #: the discount of the critic's targets (a policy is scored undiscounted). 0.99 gave seed 3
     #: a policy returning 1.00-1.19 of its specialists at the benchmark's 5 θ (0.98: 0.70 at
-    #: the noisiest) but a steeper stop, on which one of the 2D recovery test's fits ends below
-    #: the truth's likelihood (docs/benchmarks.md); the shipped policy is 0.98's
+    #: the noisiest) but a steeper stop, which the inverse's outer filter approximates worse:
+    #: on irc recover's default draw its errors on the noises are 1.4-2.1× the shipped
+    #: policy's (docs/benchmarks.md); the shipped policy is 0.98's
     gamma: float = 0.98
     #: "ddpg" (TorchRL's DDPGLoss) or "td3" (TD3Loss: twin critics, the smaller one's target,
     #: the target action smoothed by policy_noise clipped at noise_clip)

@@ -22,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 import yaml
+from scipy.stats import chi2
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
@@ -309,6 +310,7 @@ def recover_firefly2d(
             "lapse_hat": statistics.median(action_model.lapse_rate(result.nuisance).tolist()),
             "lapse_fitted": action_model.fit_lapse,
             "fit_s": fit_s,
+            "truth_check": _truth_check(loss, held, result, theta_true, scored["agents"]),
         }
         timings[f"fit_{method}_s"] = fit_s
         if config.particles:
@@ -402,6 +404,29 @@ def _calibrate(
 
     space, theta = model.theta_space, result.theta_hat.float()
     return calibrate_intervals(space, theta, refit, config.calibrate, config.calibration_tail)
+
+
+def _truth_check(
+    loss: InverseRationalLoss,
+    held: TensorDict,
+    result: FitResult,
+    theta_true: torch.Tensor,
+    agents: list[dict],
+) -> dict:
+    """``log L(θ̂) − log L(θ*)`` under the fitted likelihood itself (θ̂'s nuisance at both)
+    into each agent's entry, and its median against an exact likelihood's (half the χ²
+    median, one degree of freedom per fitted coordinate); ``below_truth`` counts the fits
+    that ended below θ*, which no maximum can."""
+    with torch.no_grad():
+        at_truth = loss.log_likelihood(theta_true.to(result.nuisance), result.nuisance, held)
+    ratio = result.log_likelihood - at_truth
+    for agent, value in zip(agents, ratio.tolist(), strict=True):
+        agent["log_likelihood_ratio"] = value
+    return {
+        "median_log_likelihood_ratio": statistics.median(ratio.tolist()),
+        "expected_median": float(chi2.median(len(loss.parameter_names))) / 2,
+        "below_truth": int((ratio < -1e-6).sum()),
+    }
 
 
 def _particle_check(
@@ -510,6 +535,13 @@ def format_recovery(summary: dict) -> str:
             lines.append(
                 f"  fitted medians: motor noise {entry['motor_noise_hat']:.3f}, "
                 f"lapse rate {entry['lapse_hat']:.4f}"
+            )
+        truth = entry.get("truth_check")
+        if truth:
+            lines.append(
+                f"  log L(θ̂) − log L(θ*): median {truth['median_log_likelihood_ratio']:.1f} "
+                f"nats (an exact likelihood's: {truth['expected_median']:.1f}); "
+                f"{truth['below_truth']} fit(s) ended below θ*"
             )
         check = entry.get("particle_check")
         if check:
