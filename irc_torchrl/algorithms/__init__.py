@@ -28,6 +28,7 @@ from irc_torchrl.algorithms.fit import (
     fit_theta,
     particle_check,
     profile_intervals,
+    score_check,
 )
 from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
@@ -49,6 +50,7 @@ __all__ = [
     "motor_noise_policy",
     "optimal_values",
     "particle_check",
+    "score_check",
     "profile_intervals",
     "simulate_agents",
     "simulate_at_fits",
