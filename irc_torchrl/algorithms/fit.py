@@ -428,8 +428,8 @@ def expected_intervals(
         [_by_rows(sampled, params, trials, GRAD_TRIALS)[0] for _ in range(draws)]
     ).mean(0)
     # centred as fit_theta's: θ from its free coordinates, the fixed ones the space's
-    theta = loss.theta(theta_free).detach()
-    return fisher_intervals(loss.theta_space, theta, theta_free, information)
+    centre = loss.theta(theta_free).detach()
+    return fisher_intervals(loss.theta_space, centre, theta_free, information)
 
 
 def _checked_point(
