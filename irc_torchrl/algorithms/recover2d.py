@@ -35,7 +35,13 @@ from irc_torchrl.algorithms.calibration import (
     simulate_at_fits,
 )
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
-from irc_torchrl.algorithms.fit import FitResult, expected_intervals, fit_theta, particle_check
+from irc_torchrl.algorithms.fit import (
+    FitResult,
+    expected_intervals,
+    fit_theta,
+    particle_check,
+    score_check,
+)
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
@@ -416,16 +422,22 @@ def _truth_check(
     """``log L(θ̂) − log L(θ*)`` under the fitted likelihood itself (θ̂'s nuisance at both)
     into each agent's entry, and its median against an exact likelihood's (half the χ²
     median, one degree of freedom per fitted coordinate); ``below_truth`` counts the fits
-    that ended below θ*, which no maximum can."""
+    that ended below θ*, which no maximum can. Also :func:`score_check` at θ*: the rms of
+    one scoring step in standard deviations and its share beyond ±1.96 (an exact
+    likelihood's: 1 and 5%)."""
+    theta_true = theta_true.to(result.nuisance)
     with torch.no_grad():
-        at_truth = loss.log_likelihood(theta_true.to(result.nuisance), result.nuisance, held)
+        at_truth = loss.log_likelihood(theta_true, result.nuisance, held)
     ratio = result.log_likelihood - at_truth
     for agent, value in zip(agents, ratio.tolist(), strict=True):
         agent["log_likelihood_ratio"] = value
+    steps = score_check(loss, held, theta_true, result.nuisance)
     return {
         "median_log_likelihood_ratio": statistics.median(ratio.tolist()),
         "expected_median": float(chi2.median(len(loss.parameter_names))) / 2,
         "below_truth": int((ratio < -1e-6).sum()),
+        "score_rms": float(steps.pow(2).mean().sqrt()),
+        "score_beyond": float((steps.abs() > 1.96).double().mean()),
     }
 
 
@@ -542,6 +554,10 @@ def format_recovery(summary: dict) -> str:
                 f"  log L(θ̂) − log L(θ*): median {truth['median_log_likelihood_ratio']:.1f} "
                 f"nats (an exact likelihood's: {truth['expected_median']:.1f}); "
                 f"{truth['below_truth']} fit(s) ended below θ*"
+            )
+            lines.append(
+                f"  one scoring step from θ*: rms {truth['score_rms']:.2f} sd, "
+                f"{truth['score_beyond']:.0%} beyond ±1.96 (an exact likelihood's: 1, 5%)"
             )
         check = entry.get("particle_check")
         if check:
