@@ -419,13 +419,8 @@ def expected_intervals(
     trials, theta_free, params = _checked_point(loss, trials, theta, nuisance, draws)
     k = theta_free.shape[-1]
     generator = torch.Generator().manual_seed(seed)
-
-    def sampled(p: torch.Tensor, data: TensorDictBase) -> tuple[torch.Tensor]:
-        drawn = _trial_scores(loss, k, p, data, generator, data=False)[2]
-        return (drawn.mT @ drawn,)
-
     information = torch.stack(
-        [_by_rows(sampled, params, trials, GRAD_TRIALS)[0] for _ in range(draws)]
+        [_drawn_information(loss, k, params, trials, generator) for _ in range(draws)]
     ).mean(0)
     # centred as fit_theta's: θ from its free coordinates, the fixed ones the space's
     centre = loss.theta(theta_free).detach()
@@ -467,6 +462,23 @@ def _checked_point(
     return trials, theta_free, torch.cat([theta_free, nuisance.detach().double().to(device)], -1)
 
 
+def _drawn_information(
+    loss: InverseRationalLoss,
+    k: int,
+    params: torch.Tensor,
+    trials: TensorDictBase,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """One set of drawn actions' sampled Fisher information per row ``[A, p, p]``: the outer
+    products of their per-trial scores, summed over the trials."""
+
+    def sampled(p: torch.Tensor, data: TensorDictBase) -> tuple[torch.Tensor]:
+        drawn = _trial_scores(loss, k, p, data, generator, data=False)[2]
+        return (drawn.mT @ drawn,)
+
+    return _by_rows(sampled, params, trials, GRAD_TRIALS)[0]
+
+
 def score_check(
     loss: InverseRationalLoss,
     trials: TensorDictBase,
@@ -494,13 +506,9 @@ def score_check(
         _, score, drawn = _trial_scores(loss, k, p, data, generator)
         return score.sum(1), drawn.mT @ drawn
 
-    def sampled(p: torch.Tensor, data: TensorDictBase) -> tuple[torch.Tensor]:
-        drawn = _trial_scores(loss, k, p, data, generator, data=False)[2]
-        return (drawn.mT @ drawn,)
-
     score, information = _by_rows(scored, params, trials, GRAD_TRIALS)
     for _ in range(draws - 1):
-        information = information + _by_rows(sampled, params, trials, GRAD_TRIALS)[0]
+        information = information + _drawn_information(loss, k, params, trials, generator)
     covariance = torch.linalg.pinv(information / draws, hermitian=True)
     step = (covariance @ score.unsqueeze(-1)).squeeze(-1)
     return step / covariance.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
