@@ -196,6 +196,28 @@ def test_calibrated_intervals_cover_where_the_pivot_is_within_factor_times_z95(
         torch.testing.assert_close(iv.high, result.intervals.high)
 
 
+@pytest.mark.parametrize("factor", [1.0, 1.7])
+def test_an_interval_end_on_the_bound_of_theta_stays_there_as_it_widens(space2d, factor):
+    """Profile intervals end exactly on θ's bound where the likelihood never falls far enough
+    (a truth there is covered); widening keeps such ends (the round trip through the clamped
+    unconstrained coordinates moved them inside by ~1e-8 of the range, uncovering it)."""
+    theta_hat = space2d.default(torch.float64).repeat(2, 1)
+    k = len(space2d.free_names)
+    result = _result(space2d, theta_hat, torch.eye(k, dtype=torch.float64).repeat(2, 1, 1))
+    free = space2d.free_mask
+    low, high = (b(torch.float64).expand(2, -1) for b in (space2d.low, space2d.high))
+    ends = dataclasses.replace(
+        result.intervals,
+        low=torch.where(free, low, result.intervals.low),
+        high=torch.where(free, high, result.intervals.high),
+    )
+    result = dataclasses.replace(result, intervals=ends)
+    calibration = Calibration(space2d.free_names, torch.full((k,), factor), torch.zeros(1, 1, k))
+    calibrated = calibration.apply(space2d, result)
+    assert torch.equal(calibrated.intervals.low, ends.low)
+    assert torch.equal(calibrated.intervals.high, ends.high)
+
+
 def test_calibration_keeps_fixed_parameters_and_intervals_over_the_whole_range(space2d):
     space = space2d.fix(g_v=1.0)
     theta_hat = space.default(torch.float64).repeat(2, 1)
@@ -235,9 +257,7 @@ def test_calibration_keeps_fixed_parameters_and_intervals_over_the_whole_range(s
         )
 
 
-def test_calibrating_honest_intervals_leaves_them_nearly_as_they_are(
-    firefly1d_model, trained_q
-):
+def test_calibrating_honest_intervals_leaves_them_nearly_as_they_are(firefly1d_model, trained_q):
     """On the 1D task the likelihood is exact and the Wald intervals honest, so the factors
     come out near 1. 12 agents from the prior (seed 0), 100 trials each (seed 1), calibrated on
     3 datasets each (36 pivots per parameter). Tolerance: factors in [0.7, 1.5] (measured 0.91

@@ -478,6 +478,24 @@ def test_a_start_competes_with_the_screened_draws(firefly1d_model, trained_q, sp
     assert not torch.equal(pairs[:, 1, :k], truth)
 
 
+def test_a_start_on_the_bound_of_theta_climbs_as_a_screened_one(firefly1d_model, trained_q, space):
+    """A start with log σ₀ on its bound (its unconstrained coordinate clamped at ±18) begins
+    at the fit's ±BOUND. From beyond, the first step dragged it back along with g_a's step,
+    the agent at g_a = 1.3 refused that step every time and was called converged where it
+    started (g_a 1.3 unfitted, against 1.2921 from screened draws; measured before the fix)."""
+    theta = space.default().repeat(2, 1)
+    theta[:, 0], theta[:, 1] = torch.tensor([0.8, 1.3]), space.high()[1]
+    policy = boltzmann_policy(firefly1d_model, trained_q, TEMPERATURE)
+    trials = simulate_agents(firefly1d_model, policy, theta, 100, space.default(), seed=1)
+    loss = make_loss(firefly1d_model, trained_q, 2)
+    from_bound = fit_theta(loss, trials, n_screen=0, starts=theta.double(), seed=0)
+    screened = fit_theta(loss, trials, seed=0)
+    assert from_bound.converged.all()
+    assert (from_bound.theta_hat - screened.theta_hat).abs().max() < 2e-3
+    gap = from_bound.log_likelihood - screened.log_likelihood
+    assert gap.abs().max() < 1e-3, gap
+
+
 def test_bfgs_update_meets_the_secant_equation_and_stays_positive_definite():
     """``_bfgs_update``: the new curvature maps the step onto the gradient change (the secant
     equation) where the step saw positive curvature, and stays SPD where it did not (Powell)."""

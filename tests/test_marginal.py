@@ -36,59 +36,65 @@ class _Policy(torch.nn.Module):
         return torch.tanh(self.sharpness * drive + self.mlp(features))
 
 
-def _simulate(theta, motor, n, seed, sharpness=1.0, lapse=0.0):
-    """Trials of an agent running its EKF on noisy observations; returns states, actions."""
+def _simulate(theta, motor, n, seed, sharpness=1.0, lapse=0.0, world=None, model=MODEL):
+    """Trials of an agent running its EKF under ``theta`` on noisy observations of a world
+    run by ``world`` (default: ``theta``); returns states, actions."""
     g = torch.Generator().manual_seed(seed)
     action_model = CensoredGaussianActionModel(
         _Policy(sharpness), -torch.ones(2), torch.ones(2), lapse=lapse
     )
     theta = theta.expand(n, -1)
-    state, target = MODEL.initial_state(theta, g)
-    mean, cov = MODEL.initial_belief(state, target, theta)
+    world = theta if world is None else world.expand(n, -1)
+    state, target = model.initial_state(world, g)
+    mean, cov = model.initial_belief(state, target, theta)
     states, actions = [], []
     for t in range(T):
         step = torch.full((n, 1), t)
-        features = MODEL.belief_features(mean, cov, target, step, theta)
+        features = model.belief_features(mean, cov, target, step, theta)
         noise = motor * torch.randn(n, 2, generator=g, dtype=torch.float64)
         action = (action_model.actor(features) + noise).clamp(-1, 1)
         states.append(state)
         actions.append(action)
-        nxt = MODEL.transition(state, action, theta)
-        std = MODEL.process_cov(state, action, theta).diagonal(dim1=-2, dim2=-1).sqrt()
+        nxt = model.transition(state, action, world)
+        std = model.process_cov(state, action, world).diagonal(dim1=-2, dim2=-1).sqrt()
         state = nxt + std * torch.randn(n, 5, generator=g, dtype=torch.float64)
-        o_std = MODEL.observation_cov(state, theta).diagonal(dim1=-2, dim2=-1).sqrt()
-        observation = MODEL.observe(state, theta) + o_std * torch.randn(
+        o_std = model.observation_cov(state, world).diagonal(dim1=-2, dim2=-1).sqrt()
+        observation = model.observe(state, world) + o_std * torch.randn(
             n, 2, generator=g, dtype=torch.float64
         )
-        mean, cov = ekf_step(MODEL, mean, cov, action, observation, theta)
+        mean, cov = ekf_step(model, mean, cov, action, observation, theta)
     return action_model, torch.stack(states, 1), torch.stack(actions, 1), target
 
 
-def _monte_carlo(action_model, theta, nuisance, state, action, target, samples, seed):
-    """``log E_v[Π_t p(a_t | z_t(v))]`` over the agent's observation noise ``v``."""
+def _monte_carlo(
+    action_model, theta, nuisance, state, action, target, samples, seed, world=None, model=MODEL
+):
+    """``log E_v[Π_t p(a_t | z_t(v))]`` over the agent's observation noise ``v``, which the
+    world run by ``world`` (default: ``theta``) draws."""
     g = torch.Generator().manual_seed(seed)
     n = state.shape[0]
     rep = lambda x: x.repeat_interleave(samples, 0)  # noqa: E731
-    theta_r, state_r, action_r, target_r = (
+    theta_r, world_r, state_r, action_r, target_r = (
         rep(theta.expand(n, -1)),
+        rep((theta if world is None else world).expand(n, -1)),
         rep(state),
         rep(action),
         rep(target),
     )
-    mean, cov = MODEL.initial_belief(state_r[:, 0], target_r, theta_r)
+    mean, cov = model.initial_belief(state_r[:, 0], target_r, theta_r)
     total = torch.zeros(n * samples, dtype=torch.float64)
     for t in range(T):
-        features = MODEL.belief_features(
+        features = model.belief_features(
             mean, cov, target_r, torch.full((len(mean), 1), t), theta_r
         )
-        scored = MODEL.scored_actions(action_r[:, t], torch.full((len(mean), 1), t))
+        scored = model.scored_actions(action_r[:, t], torch.full((len(mean), 1), t))
         total += action_model.log_prob(features, action_r[:, t], rep(nuisance), scored)
         if t + 1 < T:
             nxt = state_r[:, t + 1]
-            o_std = MODEL.observation_cov(nxt, theta_r).diagonal(dim1=-2, dim2=-1).sqrt()
+            o_std = model.observation_cov(nxt, world_r).diagonal(dim1=-2, dim2=-1).sqrt()
             noise = o_std * torch.randn(len(mean), 2, generator=g, dtype=torch.float64)
-            observation = MODEL.observe(nxt, theta_r) + noise
-            mean, cov = ekf_step(MODEL, mean, cov, action_r[:, t], observation, theta_r)
+            observation = model.observe(nxt, world_r) + noise
+            mean, cov = ekf_step(model, mean, cov, action_r[:, t], observation, theta_r)
     total = total.view(n, samples)
     return total.logsumexp(-1) - math.log(samples)
 
@@ -133,6 +139,57 @@ def test_marginal_likelihood_matches_monte_carlo(obs_noise, lapse, moments):
             mean, cov = ekf_step(MODEL, mean, cov, action[:, t], obs, theta_b)
     assert (logp - mc).abs().max() < 0.1, logp - mc
     assert (map_logp - mc).abs().mean() > 3 * (logp - mc).abs().mean()
+
+
+class _ScaledFlow(Firefly2DModel):
+    """The 2D task with its optic flow scaled by 1 + goal radius: an observation that
+    depends on θ (through a parameter the stand-in actor does not read)."""
+
+    def _scale(self, theta):
+        return 1 + self._theta(theta, "goal_radius")
+
+    def observe(self, state, theta):
+        return self._scale(theta) * super().observe(state, theta)
+
+    def observation_jacobian(self, state, theta):
+        return self._scale(theta).unsqueeze(-1) * super().observation_jacobian(state, theta)
+
+
+def test_the_world_makes_the_observation_the_agent_predicts_under_its_own_theta():
+    """The agent (goal radius 0.25) expects flow scaled by 1.25 in a world (0.45) that scales
+    it by 1.45. The outer filter, the particle filter and the hard E-step take the world's
+    observation and the agent's prediction of it: within 0.2 nats per 10-step trial of brute
+    force (measured 0.04 and 0.09, two brute-force seeds 0.04 apart; with the agent's θ for
+    both, 0.8 nats off)."""
+    model = _ScaledFlow()
+    noise = {"obs_sigma_v": 0.3, "obs_sigma_w": 0.3}
+    agent = SPACE.from_dict({"goal_radius": 0.25, **noise}).double()
+    world = SPACE.from_dict({"goal_radius": 0.45, **noise}).double()
+    action_model, state, action, target = _simulate(
+        agent, 0.15, n=6, seed=4, world=world, model=model
+    )
+    nuisance = torch.full((6, 2), math.log(0.15), dtype=torch.float64)
+    mc = _monte_carlo(
+        action_model, agent, nuisance, state, action, target, 20000, 2, world=world, model=model
+    )
+    theta_b, world_b = agent.expand(6, -1), world.expand(6, -1)
+    recorded = (model, action_model, theta_b, nuisance, state, action, target, world_b)
+    outer = marginal_filter(*recorded)[0].sum(-1)
+    particles = particle_log_likelihood(
+        *recorded, n_particles=2000, generator=torch.Generator().manual_seed(0)
+    )[0]
+    assert (outer - mc).abs().max() < 0.2, outer - mc
+    assert (particles - mc).abs().max() < 0.2, particles - mc
+    # the hard E-step's agent sees the world's noiseless observation of each recorded state
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    loss = InverseRationalLoss(model, action_model, method="map")
+    mean, _ = loss.beliefs(*(x.unsqueeze(0) for x in (theta_b, state, action, target, world_b)))
+    expected, cov = model.initial_belief(state[:, 0], target, theta_b)
+    for t in range(T - 1):
+        seen = model.observe(state[:, t + 1], world_b)
+        expected, cov = ekf_step(model, expected, cov, action[:, t], seen, theta_b)
+    torch.testing.assert_close(mean[0, :, -1], expected)
 
 
 def test_cubature_follows_a_sharply_switching_policy_better_than_the_tangent():
@@ -469,6 +526,39 @@ def test_the_loss_scores_transitions_beside_the_particle_likelihood_where_the_wo
     discrete = InverseRationalLoss(MODEL, BoltzmannActionModel(torch.nn.Identity()))
     with pytest.raises(ValueError, match="continuous action model"):
         discrete.particle_log_likelihood(theta, nuisance, trials)
+
+
+@pytest.mark.parametrize("method", ["marginal", "map"])
+def test_a_shared_world_is_run_by_the_candidate_theta_not_the_recorded_one(method):
+    """With ``world="shared"`` the agent's model is the world's: a candidate θ runs the world
+    whose observation noise moves the agent's belief, so the recorded ``task_theta`` is not
+    read; with the recorded one set to the candidate, the known world's likelihood differs
+    from it by the transitions alone."""
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.from_dict({"obs_sigma_v": 0.6, "sigma_v": 0.3}).double().unsqueeze(0)
+    action_model, trials = _trials(1, 3, theta, 0.15, seed=3)
+    nuisance = torch.full((1, 2), math.log(0.15), dtype=torch.float64)
+    candidate = SPACE.from_dict({"obs_sigma_v": 0.9, "sigma_v": 0.2}).double().unsqueeze(0)
+    known, shared = (
+        InverseRationalLoss(MODEL, action_model, world=world, method=method)
+        for world in ("known", "shared")
+    )
+    elsewhere, as_candidate = trials.clone(), trials.clone()
+    elsewhere["task_theta"] = (
+        SPACE.from_dict({"obs_sigma_v": 0.2}).double().expand_as(trials["task_theta"])
+    )
+    as_candidate["task_theta"] = candidate.expand_as(trials["task_theta"])
+    at = shared.log_likelihood(candidate, nuisance, trials, per_trial=True)
+    torch.testing.assert_close(
+        shared.log_likelihood(candidate, nuisance, elsewhere, per_trial=True), at
+    )
+    moves = shared.log_likelihood(
+        candidate, nuisance, as_candidate, per_trial=True
+    ) - known.log_likelihood(candidate, nuisance, as_candidate, per_trial=True)
+    torch.testing.assert_close(
+        at - moves, known.log_likelihood(candidate, nuisance, as_candidate, per_trial=True)
+    )
 
 
 def test_the_particle_check_tells_the_marginal_approximation_from_the_hard_e_step():

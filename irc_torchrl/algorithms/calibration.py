@@ -174,6 +174,9 @@ class Calibration:
         def scaled(end: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
             u = u_hat + scale * (space.to_unconstrained(end) - u_hat)
             moved = torch.where(voided, bound, space.from_unconstrained(u.clamp(-_EDGE, _EDGE)))
+            # an end on θ's bound stays there as the interval widens (the unconstrained
+            # coordinates clamp it, so the round trip would move it inside by ~1e-8 of the range)
+            moved = torch.where((end == bound) & (scale >= 1), end, moved)
             return torch.where(kept, end, moved)
 
         low = scaled(old.low, space.low(hat.dtype, hat.device).expand_as(hat))

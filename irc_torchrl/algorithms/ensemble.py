@@ -330,7 +330,9 @@ def evaluate_policy(
 
     The world pays its own reward (the true position inside the goal on stopping, minus effort),
     not the agent's expected one: this is what an experimenter would score. Every call with the
-    same ``seed`` faces the same targets and noise, so evaluations are comparable.
+    same ``seed`` faces the same θ and first targets, and the same noise until a row's trial
+    ends: the rows share one random stream, which that row's reset then moves on, so later
+    noise depends on when the policy stops (a difference of noise, not of bias).
 
     Returns:
         ``success_rate``, ``mean_return``, ``mean_length`` (steps), and per θ

@@ -981,20 +981,25 @@ def _screen_starts(
     space = loss.theta_space
     n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
+    k = int(free.sum())
     low, high = space.low(torch.float64)[free], space.high(torch.float64)[free]
     draws = space.default(torch.float64).expand(n_screen, -1).clone()
     if n_screen:
         with torch.device("cpu"):  # the engine keeps its state on the default device
-            sobol = torch.quasirandom.SobolEngine(int(free.sum()), scramble=True, seed=seed)
+            sobol = torch.quasirandom.SobolEngine(k, scramble=True, seed=seed)
             draws[:, free] = low + sobol.draw(n_screen, dtype=torch.float64) * (high - low)
         draws[0] = space.default(torch.float64)
     candidates = space.to_unconstrained(draws)[:, free].to(device).expand(n_agents, -1, -1)
     if starts is not None:
         own = space.to_unconstrained(starts.cpu())[:, free].to(device).unsqueeze(1)
         candidates = torch.cat([candidates, own], 1)
+    # a candidate past ±BOUND (a draw at the prior's edge, a start on θ's bound) is scored and
+    # started where the fit holds its bounded coordinates: from beyond, the first step would
+    # drag it back along with the others' step, and a row refusing that step never moves
+    candidates = _clamp_bounded(candidates, loss.bounded.to(device)[:k])
     nuisance = loss.action_model.nuisance_init.double().expand(n_agents, -1).to(device)
     # a bounded nuisance (a fitted lapse rate) starts within the fit's bounds
-    nuisance = _clamp_bounded(nuisance, loss.bounded.to(device)[int(free.sum()) :])
+    nuisance = _clamp_bounded(nuisance, loss.bounded.to(device)[k:])
     # every (agent, candidate) pair is a row; rows are scored a chunk at a time
     n_candidates = candidates.shape[1]
     pairs = (

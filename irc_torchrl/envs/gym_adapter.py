@@ -90,14 +90,17 @@ class Firefly2DGymEnv(gym.Env):
         return self._observation(), self._info()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Take ``action = (a_v, a_ω)`` in ``[-1, 1]²``."""
+        """Take ``action = (a_v, a_ω)`` in ``[-1, 1]²``. At the time limit both ``terminated``
+        and ``truncated`` are true (the TorchRL env's flags)."""
         if self._td is None:
             raise RuntimeError("Firefly2DGymEnv.step: call reset() first")
         action = torch.as_tensor(np.asarray(action, dtype=np.float32))
         self._td["action"] = action
         td = self.env.step(self._td)
         reward = float(td["next", "reward"])
-        terminated = bool(td["next", "terminated"]) and not bool(td["next", "truncated"])
+        # the time limit is part of the task (the step is a feature and no reward follows it),
+        # so a timeout terminates, as in the TorchRL env: a learner must not bootstrap there
+        terminated = bool(td["next", "terminated"])
         truncated = bool(td["next", "truncated"])
         self._td = td["next"].exclude("reward", "done", "terminated", "truncated")
         return self._observation(), reward, terminated, truncated, self._info()

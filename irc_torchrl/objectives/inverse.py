@@ -46,7 +46,9 @@ class InverseRationalLoss(LossModule):
         theta_space: which parameters are free; defaults to the model's.
         n_agents: how many agents are fitted at once (independent rows).
         world: ``"known"`` if the world's θ is the recorded ``task_theta`` (actions alone
-            inform θ), ``"shared"`` if the agent's model is the world's (transitions count too).
+            inform θ), ``"shared"`` if the agent's model is the world's: the world then runs
+            under the candidate θ (its transitions count too, its observations' noise is the
+            candidate's, the recorded ``task_theta`` is not read).
         method: ``"map"``, the paper's hard E-step (the agent's observations at their most
             probable value), or ``"marginal"``, the agent's unseen observations integrated out
             by an outer filter over its belief (:mod:`~irc_torchrl.objectives.marginal`).
@@ -188,7 +190,7 @@ class InverseRationalLoss(LossModule):
             drawn = torch.where(mask, draws, torch.zeros_like(draws)).sum(2)
         else:
             total, drawn = self._map_log_likelihood(
-                theta_b, nuisance_b, state, action, target, mask, generator
+                theta_b, nuisance_b, state, action, target, mask, task_theta, generator
             )
         if self.world == "shared":
             moved, moved_drawn = self._transition_log_likelihood(
@@ -238,10 +240,13 @@ class InverseRationalLoss(LossModule):
         dtype = theta.dtype
         state = trials[keys.state].to(dtype)
         target = trials[keys.target][:, :, 0].to(dtype)
-        task_theta = trials[keys.task_theta][:, :, 0].to(dtype)
         theta_b, nuisance_b = (
             x if x.dim() == 3 else x.unsqueeze(1).expand(*state.shape[:2], -1)
             for x in (theta, nuisance)
+        )
+        # a shared world is the agent's own: the candidate θ runs it
+        task_theta = (
+            theta_b if self.world == "shared" else trials[keys.task_theta][:, :, 0].to(dtype)
         )
         return (
             theta_b,
@@ -254,10 +259,10 @@ class InverseRationalLoss(LossModule):
         )
 
     def _map_log_likelihood(
-        self, theta_b, nuisance_b, state, action, target, mask, generator
+        self, theta_b, nuisance_b, state, action, target, mask, task_theta, generator
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The hard E-step: beliefs along the most probable observations, then the actions."""
-        means, covs = self.beliefs(theta_b, state, action, target)
+        means, covs = self.beliefs(theta_b, state, action, target, task_theta)
         steps = torch.arange(state.shape[2], device=state.device).view(1, 1, -1, 1)
         features = self.model.belief_features(
             means, covs, target.unsqueeze(2), steps, theta_b.unsqueeze(2)
@@ -296,7 +301,7 @@ class InverseRationalLoss(LossModule):
                 final_steps=self.final_steps,
             )  # fmt: skip
         else:
-            mean, cov = self.beliefs(theta_b, state, action, target)
+            mean, cov = self.beliefs(theta_b, state, action, target, task_theta)
             mean_cov = torch.zeros_like(cov)
         return TensorDict(
             {"belief": {"mean": mean, "cov": cov, "mean_cov": mean_cov}},
@@ -304,19 +309,26 @@ class InverseRationalLoss(LossModule):
         )
 
     def beliefs(
-        self, theta_b: torch.Tensor, state: torch.Tensor, action: torch.Tensor, target: torch.Tensor
+        self,
+        theta_b: torch.Tensor,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        target: torch.Tensor,
+        task_theta: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The agent's beliefs ``[A, n, T, ds]``, ``[A, n, T, ds, ds]`` at every recorded step.
 
         The filter runs under ``theta_b`` along the recorded actions; where the task has
         observations, the agent's are taken at their most probable value given the recorded
-        state (the paper's hard E-step).
+        state (the paper's hard E-step): the world's observation of it, under ``task_theta``
+        (the world's θ, ``[A, n, d]``; default ``theta_b``, a world that is the agent's).
         """
+        world = theta_b if task_theta is None else task_theta
         mean, cov = self.model.initial_belief(state[:, :, 0], target, theta_b)
         means, covs = [mean], [cov]
         for t in range(state.shape[2] - 1):
             observation = (
-                self.model.observe(state[:, :, t + 1], theta_b)
+                self.model.observe(state[:, :, t + 1], world)
                 if self.model.observation_dim
                 else None
             )

@@ -398,7 +398,7 @@ def _particle_chunk(
             noise = torch.randn(
                 b * n, root.shape[-1], 1, dtype=dtype, generator=generator, device=generator.device
             )
-            observation = model.observe(nxt, theta_p) + (root @ noise.to(device)).squeeze(-1)
+            observation = model.observe(nxt, world_p) + (root @ noise.to(device)).squeeze(-1)
         moved = ekf_step(model, mean, cov, a_t, observation, theta_p)
         mean = torch.where(keep, moved[0], mean)
         cov = torch.where(keep.unsqueeze(-1), moved[1], cov)
@@ -416,11 +416,12 @@ def _propagate(
     task_theta: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The agent's filter to the next recorded state, linearised at the recovered mean, and the
-    outer covariance carried through it (the world's observation noise moves the mean)."""
+    outer covariance carried through it (the world's observation noise moves the mean). The
+    world observes the state under its own θ; the agent predicts that under its θ."""
     jac_f = model.transition_jacobian(mean, action, theta)
     prior, prior_cov = ekf_predict(model, mean, cov, action, theta)
     gain, jac_h, agent_noise = ekf_gain(model, prior, prior_cov, theta)
-    residual = model.observe(next_state, theta) - model.observe(prior, theta)
+    residual = model.observe(next_state, task_theta) - model.observe(prior, theta)
     mean, cov, a = joseph_update(prior, prior_cov, gain, jac_h, agent_noise, residual)
     world_noise = model.observation_cov(next_state, task_theta)
     outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
