@@ -108,6 +108,84 @@ def test_the_documented_csv_example_reads(tmp_path, model2d):
     assert trials["task_theta"][0, 0, model2d.theta_space.index("g_v")] == pytest.approx(1.2)
 
 
+@pytest.mark.parametrize("suffix", [".npz", ".csv"])
+def test_columns_outside_the_schema_are_not_read(tmp_path, model2d, trials2d, suffix):
+    """An export with more than the schema (eye position with gaps, event labels, a column of
+    another length, a trailing comma's nameless column) reads as the schema's columns alone."""
+    columns = trials_to_columns(trials2d, model2d)
+    clean = tmp_path / f"clean{suffix}"
+    _write_raw(columns, clean)
+    rows = len(columns["trial"])
+    eye = np.arange(rows, dtype=np.float64)
+    eye[3] = np.nan
+    extra = {**columns, "eye_x": eye, "event": np.array(["go"] * rows)}
+    if suffix == ".npz":
+        extra["events"] = np.arange(3.0)
+    else:
+        extra[""] = np.full(rows, "")
+    path = tmp_path / f"extra{suffix}"
+    _write_raw(extra, path)
+    back, expected = read_trials(path, model2d), read_trials(clean, model2d)
+    assert set(back.keys()) == set(expected.keys())
+    for key in expected.keys():
+        assert torch.equal(back[key], expected[key]), key
+
+
+def test_a_column_named_twice_is_refused(tmp_path, model2d, trials2d):
+    path = tmp_path / "twice.csv"
+    _write_raw(trials_to_columns(trials2d, model2d), path)
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0] + ",x", *(line + ",999" for line in lines[1:])]))
+    with pytest.raises(ValueError, match=r"twice\.csv: column\(s\) \['x'\] appear more than once"):
+        read_trials(path, model2d)
+
+
+def test_a_gap_in_a_trial_is_refused_unless_resampled(tmp_path, model2d, trials2d):
+    """Each kept sample is one model step, so missing samples would shorten the trial's time
+    silently; resampling interpolates across them instead."""
+    columns = trials_to_columns(trials2d, model2d)
+    longest = int(np.bincount(columns["trial"].astype(np.int64)).argmax())
+    drop = np.flatnonzero(columns["trial"] == longest)[2:4]
+    keep = np.ones(len(columns["trial"]), dtype=bool)
+    keep[drop] = False
+    path = tmp_path / "gap.csv"
+    _write_raw({k: v[keep] for k, v in columns.items()}, path)
+    with pytest.raises(
+        ValueError,
+        match=rf"gap\.csv: trial {longest}, field 'time': time jumps from 0\.1 s to 0\.4 s "
+        r"at sample 2, more than 1\.5 steps of 0\.1 s",
+    ):
+        read_trials(path, model2d)
+    # the same recording at another rate is resampled, and the gap with it
+    slow = {k: v[keep] for k, v in columns.items()}
+    slow["time"] = slow["time"] * 2
+    _write_raw(slow, path)
+    with pytest.warns(UserWarning, match="resampled"):
+        read = read_trials(path, model2d)
+    assert read["mask"].sum() > keep.sum()
+
+
+@pytest.mark.parametrize(
+    "field, change, match",
+    [
+        ("state", lambda t: t["state"][..., :4], r"'state' expected shape \[.*, T, 5\], got"),
+        ("state", lambda t: torch.cat([t["state"], t["state"][..., :1]], -1), r"'state' expected"),
+        ("mask", lambda t: torch.cat([~t["mask"][:1], t["mask"][1:]]), r"'mask' marks no step"),
+    ],
+    ids=["4 state columns", "6 state columns", "an empty trial"],
+)
+def test_a_memmap_folder_is_checked_as_held_trials(
+    tmp_path, model2d, trials2d, field, change, match
+):
+    held = trials2d.select("state", "action", "target", "mask", "task_theta")
+    fields = {key: held[key] for key in held.keys()}
+    fields[field] = change(held)
+    TensorDict(fields, batch_size=held.batch_size).memmap(tmp_path / "held")
+    with pytest.raises(ValueError, match=match) as excinfo:
+        read_trials(tmp_path / "held", model2d)
+    assert str(tmp_path / "held") in str(excinfo.value)
+
+
 # --- resampling and units --------------------------------------------------------------------
 def _oversampled(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Each trial recorded twice as often: linear in between, actions held from the last step."""

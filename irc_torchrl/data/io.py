@@ -32,6 +32,7 @@ from irc_torchrl.data.validate import (
     Trial,
     check_columns,
     check_trial,
+    required_columns,
     split_trials,
 )
 from irc_torchrl.envs.model import TaskModel
@@ -40,6 +41,8 @@ __all__ = ["nwb_module", "read_trials", "write_trials", "trials_to_columns"]
 
 #: the median time step may differ from the model's by this fraction before resampling
 RESAMPLE_TOLERANCE = 0.01
+#: a step this many times the median is a gap (missing samples), not one model step
+GAP = 1.5
 
 Columns = dict[str, np.ndarray]
 
@@ -64,7 +67,10 @@ def read_trials(
             e.g. ``{"x": "cm", "heading": "deg"}``. Angles wrapped into ``[-π, π]`` are
             unwrapped (:func:`~irc_torchrl.data.units.unwrap_angles`).
         resample: put each trial on the model's time grid when the recording's median step
-            differs from ``model.dt`` by more than 1% (a warning says so).
+            differs from ``model.dt`` by more than 1% (a warning says so; gaps in a trial are
+            then interpolated across). Otherwise each sample is read as one model step, and a
+            trial with a gap (a step over 1.5 times the median) is refused.
+        Columns outside the schema (its required ones and ``theta.<name>``) are not read.
 
     Returns:
         ``state``, ``action``, ``target``, ``mask``, ``task_theta`` (θ columns, else the θ
@@ -78,6 +84,9 @@ def read_trials(
     reader = _reader(path)
     columns = reader(path, model, time_column, trial_column)
     check_columns(columns, model, source, time_column, trial_column)
+    # the schema's other columns (eye position, events, ...) are the user's business
+    used = _used_columns(model, time_column, trial_column)
+    columns = {name: value for name, value in columns.items() if used(name)}
     columns = convert_units(columns, units or {}, model, source, time_column)
     trials = [
         (label, unwrap_angles(trial, model))
@@ -166,13 +175,24 @@ def _writer(path: Path) -> Writer:
     return writers[path.suffix]
 
 
+def _used_columns(model: TaskModel, time_column: str, trial_column: str) -> Callable[[str], bool]:
+    """Whether a column is read: the schema's required ones and ``theta.<name>``; readers
+    leave the others unread (an empty placeholder keeps their name for misspelling hints)."""
+    required = set(required_columns(model, time_column, trial_column))
+    return lambda name: name in required or name.startswith(THETA_PREFIX)
+
+
 def _read_npz(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
     if not zipfile.is_zipfile(path):
         raise ValueError(f"{path}: not an NPZ archive; expected a file written by np.savez")
+    used = _used_columns(model, time_column, trial_column)
     columns = {}
     try:
         with np.load(path, allow_pickle=False) as archive:
             for name in archive.files:
+                if not used(name):
+                    columns[name] = np.empty(0)
+                    continue
                 try:
                     columns[name] = archive[name]
                 except ValueError:  # an object array, refused without unpickling
@@ -201,7 +221,14 @@ def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str)
     if not rows:
         return {}
     header = [name.strip() for name in rows[0]]
-    values = np.empty((len(rows) - 1, len(header)))
+    repeated = sorted({name for name in header if header.count(name) > 1})
+    if repeated:
+        raise ValueError(
+            f"{path}: column(s) {repeated} appear more than once in the header; expected "
+            "each column once"
+        )
+    used = _used_columns(model, time_column, trial_column)
+    values = np.full((len(rows) - 1, len(header)), np.nan)
     for r, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):
             raise ValueError(
@@ -209,6 +236,8 @@ def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str)
                 f"of the header {header}"
             )
         for c, cell in enumerate(row):
+            if not used(header[c]):
+                continue
             try:
                 values[r - 2, c] = float(cell) if cell.strip() else np.nan
             except ValueError:
@@ -216,7 +245,7 @@ def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str)
                     f"{path}: line {r}, column {header[c]!r}: {cell!r} is not a number; "
                     "expected numbers (empty or NaN for a gap)"
                 ) from None
-    return {name: values[:, c] for c, name in enumerate(header)}
+    return {name: values[:, c] if used(name) else np.empty(0) for c, name in enumerate(header)}
 
 
 def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
@@ -245,6 +274,10 @@ def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: s
     missing = [k for k in TRIAL_KEYS if k not in trials.keys()]
     if missing:
         raise KeyError(f"{path}: missing field(s) {missing}; held trials need {list(TRIAL_KEYS)}")
+    try:  # shapes and masks before the table is cut from them
+        trials = validate_trials(trials, model)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{path}: {err}") from None
     return trials_to_columns(trials.reshape(-1, trials.shape[-1]), model, time_column, trial_column)
 
 
@@ -329,8 +362,17 @@ def _on_model_grid(
         discrete.add(model.action_names[0])
     out = []
     for label, trial in trials:
-        time = trial[time_column].astype(np.float64)
-        time = time - time[0]
+        recorded = trial[time_column].astype(np.float64)
+        time = recorded - recorded[0]
+        gaps = np.flatnonzero(np.diff(time) > GAP * step)
+        if gaps.size and not resample:
+            i = int(gaps[0])
+            raise ValueError(
+                f"{source}: trial {label}, field {time_column!r}: time jumps from "
+                f"{recorded[i]:.6g} s to {recorded[i + 1]:.6g} s at sample {i + 1}, more than "
+                f"{GAP:g} steps of {step:.6g} s; expected evenly spaced samples, each read as "
+                "one model step (fill or cut the gap)"
+            )
         if resample:
             grid = model.dt * np.arange(int(np.floor(time[-1] / model.dt + 1e-6)) + 1)
             if len(grid) < 2:
