@@ -4,14 +4,17 @@ A checkpoint is one ``torch.save`` of plain data (tensors, dicts, lists, strings
 network and optimiser state dicts, training counters, RNG states as tensors, the resolved
 config, the θ space, the task name and the library version. :func:`load_checkpoint` reads it
 with ``torch.load(weights_only=True)``, so a file can never run code when loaded, and checks
-that it belongs to the task and θ space the caller expects. A bare name (``"firefly2d"``)
-loads the checkpoint shipped inside the package.
+that it belongs to the task and θ space the caller expects. torch does not check the archive's
+CRCs, so a damaged file would load with garbage weights: they are checked first, and a
+non-finite tensor is refused. A bare name (``"firefly2d"``) loads the checkpoint shipped inside
+the package.
 """
 
 from __future__ import annotations
 
 import pickle
-from collections.abc import Mapping
+import zipfile
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,12 +24,21 @@ import irc_torchrl
 from irc_torchrl.data.files import atomic_path
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["FORMAT", "PACKAGED", "load_checkpoint", "resolve_checkpoint", "save_checkpoint"]
+__all__ = [
+    "FORMAT",
+    "HEADER",
+    "PACKAGED",
+    "load_checkpoint",
+    "resolve_checkpoint",
+    "save_checkpoint",
+]
 
 #: the format tag written into every checkpoint
 FORMAT = "irc_torchrl.checkpoint/1"
 #: where checkpoints shipped with the package live (loadable by bare name)
 PACKAGED = Path(__file__).resolve().parent / "checkpoints"
+#: the entries :func:`save_checkpoint` writes beside the caller's state
+HEADER = ("format", "task", "version", "theta_space", "config")
 
 
 def _major(version: str) -> str:
@@ -85,6 +97,7 @@ def load_checkpoint(
     *,
     task: str | None = None,
     theta_space: ThetaSpace | None = None,
+    required: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Read a checkpoint (weights only) and check it matches the expected task and θ space.
 
@@ -92,35 +105,27 @@ def load_checkpoint(
         source: a file path, or the name of a packaged checkpoint (``"firefly2d"``).
         task: the task the caller expects; ``None`` accepts any.
         theta_space: the θ space the caller expects; ``None`` accepts any.
+        required: the state entries the caller reads (besides :data:`HEADER`'s).
 
     Raises:
         FileNotFoundError: no such file or packaged name.
-        ValueError: the file is not a readable checkpoint (truncated, garbage, or holding
-            pickled objects other than plain data), or its task, θ space or library major
-            version does not match.
+        ValueError: the file is not a readable checkpoint (truncated, garbage, failing its
+            CRCs, or holding pickled objects other than plain data), lacks a required entry,
+            holds a non-finite tensor, or its task, θ space or library major version does
+            not match.
     """
     path = resolve_checkpoint(source)
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as error:
-        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise ValueError(
-            f"checkpoint {path}: refused to load; it is not plain weights-only data ({first})"
-        ) from None
-    except (RuntimeError, EOFError, OSError, ValueError) as error:
-        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise ValueError(
-            f"checkpoint {path}: not a readable irc_torchrl checkpoint "
-            f"(truncated or corrupt: {first})"
-        ) from None
+    data = _read(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         found = data.get("format") if isinstance(data, dict) else type(data).__name__
         raise ValueError(f"checkpoint {path}: format is {found!r}, expected {FORMAT!r}")
+    _require(path, data, HEADER)
     if _major(data["version"]) != _major(irc_torchrl.__version__):
         raise ValueError(
             f"checkpoint {path}: version {data['version']} was written by another major version "
             f"than this library's {irc_torchrl.__version__}"
         )
+    _require(path, data, required)
     if task is not None and data["task"] != task:
         raise ValueError(f"checkpoint {path}: task is {data['task']!r}, expected {task!r}")
     if theta_space is not None:
@@ -129,5 +134,66 @@ def load_checkpoint(
             raise ValueError(
                 f"checkpoint {path}: theta_space is {stored!r}, expected {theta_space!r}"
             )
+    entry = _non_finite(data)
+    if entry is not None:
+        raise ValueError(
+            f"checkpoint {path}: entry {entry} holds NaN or infinite values; expected finite "
+            "weights (the file is damaged or its training diverged)"
+        )
     data["path"] = str(path)
     return data
+
+
+def _read(path: Path) -> Any:
+    """The checkpoint's payload, every failure a one-line ValueError naming ``path``.
+
+    The archive's CRCs are checked first: ``torch.load`` reads a damaged tensor silently.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()
+        if damaged is not None:
+            raise ValueError(f"entry {damaged} fails its CRC check")
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        raise ValueError(
+            f"checkpoint {path}: refused to load; it is not plain weights-only data "
+            f"({_first_line(error)})"
+        ) from None
+    except Exception as error:  # torch and zipfile raise many types for a damaged file
+        raise ValueError(
+            f"checkpoint {path}: not a readable irc_torchrl checkpoint "
+            f"(truncated or corrupt: {_first_line(error)}); expected a file written by irc train"
+        ) from None
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+def _require(path: Path, data: Mapping[str, Any], names: Sequence[str]) -> None:
+    """Refuse a checkpoint lacking any of the entries ``names``, naming every one missing."""
+    missing = [name for name in names if name not in data]
+    if missing:
+        raise ValueError(
+            f"checkpoint {path}: missing entries {missing}; expected a file written by irc train"
+        )
+
+
+def _non_finite(value: Any, name: str = "") -> str | None:
+    """The first floating-point tensor below ``value`` holding NaN or ±inf, as ``a/b/c``."""
+    if isinstance(value, torch.Tensor):
+        bad = value.is_floating_point() and not bool(torch.isfinite(value).all())
+        return name if bad else None
+    if isinstance(value, Mapping):
+        items = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _non_finite(item, f"{name}/{key}" if name else str(key))
+        if found is not None:
+            return found
+    return None

@@ -328,10 +328,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_arguments(args: argparse.Namespace) -> None:
-    """Refuse a negative ``--seed`` and an ``--out`` that cannot take this command's output
-    (a file, or a folder holding another command's ``summary.json``) before any work."""
-    if getattr(args, "seed", None) is not None and args.seed < 0:
-        raise ValueError(f"--seed: expected an integer ≥ 0, got {args.seed}")
+    """Refuse a ``--seed`` outside [0, 2**63) and an ``--out`` that cannot take this command's
+    output (a file, or a folder holding another command's ``summary.json``) before any work."""
+    if getattr(args, "seed", None) is not None:
+        from irc_torchrl.config import SEED_LIMIT
+
+        if not 0 <= args.seed < SEED_LIMIT:
+            raise ValueError(f"--seed: expected an integer in [0, 2**63), got {args.seed}")
     out = getattr(args, "out", None)
     if out is None:
         return

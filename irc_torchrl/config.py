@@ -8,6 +8,7 @@ write the same values out for editing. ``key=value`` overrides address nested fi
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,7 @@ if TYPE_CHECKING:  # recover2d imports this module
     from irc_torchrl.algorithms.recover2d import Recovery2DConfig
 
 __all__ = [
+    "SEED_LIMIT",
     "AgentsConfig",
     "DDPGConfig",
     "EvaluationConfig",
@@ -44,6 +46,10 @@ __all__ = [
     "load_simulate_config",
     "config_to_dict",
 ]
+
+#: seeds are integers in [0, SEED_LIMIT): torch's generators take 64 bits, and the seeds
+#: derived from one (``seed + 1000 * k``) must fit too
+SEED_LIMIT = 2**63
 
 
 @dataclass
@@ -116,8 +122,8 @@ class Firefly1DConfig:
             raise ValueError(f"config: q_iteration.gamma must lie in (0, 1], got {q.gamma}")
         if not 0 <= q.epsilon <= 1:
             raise ValueError(f"config: q_iteration.epsilon must lie in [0, 1], got {q.epsilon}")
-        if not q.ridge >= 0:
-            raise ValueError(f"config: q_iteration.ridge must be ≥ 0, got {q.ridge}")
+        if not 0 <= q.ridge < math.inf:
+            raise ValueError(f"config: q_iteration.ridge must be ≥ 0 and finite, got {q.ridge}")
         if a.world not in ("known", "shared"):
             raise ValueError(f"config: agents.world must be 'known' or 'shared', got {a.world!r}")
         self.fit.validate()
@@ -258,9 +264,12 @@ def _fitted_lapse_start(value: float) -> None:
 
 
 def _positive(**values: float) -> None:
+    """Refuse a value that is not a finite number > 0 (``.inf`` would pass ``> 0``)."""
     for name, value in values.items():
         if not value > 0:
             raise ValueError(f"config: {name} must be positive, got {value}")
+        if not math.isfinite(value):
+            raise ValueError(f"config: {name} must be finite, got {value}")
 
 
 def config_to_dict(config: Any) -> dict:
@@ -395,13 +404,13 @@ def _yaml(text: str, source: str) -> Any:
 
 
 def _check_seeds(config: Any, prefix: str = "") -> None:
-    """Every ``seed`` field below ``config`` is a non-negative integer (torch's and numpy's)."""
+    """Every ``seed`` field below ``config`` is an integer in [0, :data:`SEED_LIMIT`)."""
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value):
             _check_seeds(value, f"{prefix}{f.name}.")
-        elif f.name == "seed" and value < 0:
-            raise ValueError(f"config: {prefix}seed must be an integer ≥ 0, got {value}")
+        elif f.name == "seed" and not 0 <= value < SEED_LIMIT:
+            raise ValueError(f"config: {prefix}seed must be an integer in [0, 2**63), got {value}")
 
 
 def load_recovery2d_config(

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import zipfile
+
 import pytest
 import torch
 
 import irc_torchrl
-from irc_torchrl.algorithms.ensemble import Firefly2DConfig, make_model, train_ensemble
+from irc_torchrl.algorithms.ensemble import (
+    Firefly2DConfig,
+    load_ensemble_critic,
+    load_ensemble_policy,
+    make_model,
+    train_ensemble,
+)
 from irc_torchrl.checkpoint import load_checkpoint, save_checkpoint
 from irc_torchrl.config import load_firefly2d_config
 from irc_torchrl.envs.firefly2d import firefly2d_theta_space
@@ -95,6 +103,78 @@ def test_missing_truncated_and_pickled_files_are_refused(tmp_path, trained):
     with pytest.raises(ValueError, match="refused to load"):
         load_checkpoint(tmp_path / "evil.pt")
     assert not _Exploit.ran
+
+
+def test_damaged_archive_and_text_file_are_refused(tmp_path, trained):
+    """torch reads a tensor whose bytes were overwritten without complaint; the CRCs catch it."""
+    _, out = trained
+    data = bytearray((out / "checkpoint.pt").read_bytes())
+    with zipfile.ZipFile(out / "checkpoint.pt") as archive:
+        tensors = [info for info in archive.infolist() if "/data/" in info.filename]
+        largest = max(tensors, key=lambda info: info.file_size)
+    middle = largest.header_offset + 128 + largest.file_size // 2  # inside its bytes
+    data[middle : middle + 16] = bytes(255 - b for b in data[middle : middle + 16])
+    (tmp_path / "damaged.pt").write_bytes(data)
+    for load in (load_checkpoint, load_ensemble_policy, load_ensemble_critic):
+        with pytest.raises(ValueError, match=r"damaged.pt: not a readable .* fails its CRC check"):
+            load(tmp_path / "damaged.pt")
+    (tmp_path / "text.pt").write_text("hello")  # torch.load raises KeyError: 101
+    with pytest.raises(ValueError, match=r"text.pt: not a readable .*; expected a file written"):
+        load_checkpoint(tmp_path / "text.pt")
+
+
+def _edited(trained, tmp_path, edit) -> str:
+    """The trained checkpoint with its payload changed by ``edit``, saved with valid CRCs."""
+    _, out = trained
+    payload = torch.load(out / "checkpoint.pt", weights_only=True)
+    edit(payload)
+    torch.save(payload, tmp_path / "edited.pt")
+    return str(tmp_path / "edited.pt")
+
+
+def test_non_finite_weights_are_refused_naming_the_entry(tmp_path, trained):
+    name = next(iter(trained[0].actor.state_dict()))
+    path = _edited(trained, tmp_path, lambda p: p["best_actor"][name].view(-1)[0].fill_(torch.nan))
+    with pytest.raises(ValueError, match=f"edited.pt: entry best_actor/{name} holds NaN"):
+        load_checkpoint(path)
+
+
+def test_missing_entries_are_named(tmp_path, trained):
+    path = _edited(trained, tmp_path, lambda p: p.pop("version"))
+    with pytest.raises(ValueError, match=r"edited.pt: missing entries \['version'\]"):
+        load_checkpoint(path)
+    path = _edited(trained, tmp_path, lambda p: p.pop("best_actor"))
+    load_ensemble_critic(path)  # the critic does not need the kept policy
+    with pytest.raises(ValueError, match=r"missing entries \['best_actor'\]"):
+        load_ensemble_policy(path)
+    with pytest.raises(ValueError, match=r"missing entries \['best_actor'\]"):
+        train_ensemble(tiny(), out=tmp_path / "run", resume=path, progress=False)
+
+
+@pytest.mark.parametrize("entry", ["best_actor", "actor", "loss"])
+def test_weights_that_do_not_fit_their_config_are_refused(tmp_path, trained, entry):
+    def shrink(payload):
+        # in the loss, a critic weight (load_ensemble_critic reads those); one row, which
+        # TorchRL's loss would broadcast over the whole matrix without a word
+        name = next(k for k in payload[entry] if k.endswith("weight") and "actor" not in k)
+        payload[entry][name] = payload[entry][name][:1]
+
+    path = _edited(trained, tmp_path, shrink)
+    load = load_ensemble_policy if entry == "best_actor" else load_ensemble_critic
+    message = rf"edited.pt: entry {entry} does not fit the networks its config builds \(.* is \[1,"
+    with pytest.raises(ValueError, match=message):
+        load(path)
+    if entry != "actor":  # a resumed run reads the loss's actor, not this copy
+        with pytest.raises(ValueError, match=message):
+            train_ensemble(tiny(), out=tmp_path / "run", resume=path, progress=False)
+        assert not (tmp_path / "run").exists()  # refused before writing anything
+
+
+def test_missing_weights_are_refused_on_resume(tmp_path, trained):
+    """TorchRL's loss would load without them, keeping the fresh initialisation."""
+    path = _edited(trained, tmp_path, lambda p: p["loss"].pop(next(iter(p["loss"]))))
+    with pytest.raises(ValueError, match=r"entry loss does not fit .*\(1 weight\(s\) missing"):
+        train_ensemble(tiny(), out=tmp_path / "run", resume=path, progress=False)
 
 
 def test_other_major_version_is_refused(tmp_path):

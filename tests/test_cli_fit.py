@@ -265,12 +265,12 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),
         (["simulate", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),
         (["simulate", "n_agents=1.5"], "n_agents=1.5 is not a valid int"),
-        (["fit", "FILE", "--seed", "-1"], "--seed: expected an integer ≥ 0, got -1"),
+        (["fit", "FILE", "--seed", "-1"], "--seed: expected an integer in [0, 2**63), got -1"),
         (["train", "ddpg.warmup_frames=0"], "ddpg.warmup_frames must be positive"),
         (["train", "ddpg.sigma_init=-1"], "ddpg.sigma_init must be ≥ 0"),
         (["train", "ddpg.buffer_size=100"], "ddpg.buffer_size=100 must hold a batch"),
         (["train", "ddpg.hidden=64,64"], "ddpg.hidden='64,64' is not a list"),
-        (["train", "evaluation.seed=-1"], "evaluation.seed must be an integer ≥ 0"),
+        (["train", "evaluation.seed=-1"], "evaluation.seed must be an integer in [0, 2**63)"),
         (["train", "flush_denormal=ture"], "flush_denormal='ture' is not a valid bool"),
         (["train", "n_envs=[1"], "override 'n_envs=[1' is not valid YAML"),
     ],
@@ -348,6 +348,38 @@ def test_report_of_a_damaged_folder_exits_2_drawing_nothing(
     assert message in capsys.readouterr().err
     assert not list(tmp_path.glob("*.png"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["beliefs.npz", "summary.json"]
+
+
+def _agent(truth) -> list[dict]:
+    """The ``agents`` of a summary of ``irc simulate`` giving agent0.csv the true θ ``truth``."""
+    return [{"file": "agent0.csv", "theta_true": truth}]
+
+
+@pytest.mark.parametrize(
+    "agents, message",
+    [
+        (_agent("1.4"), "agent0.csv's theta_true is '1.4'; expected {name: number}"),
+        (_agent({"g_v": "fast"}), "theta_true is {'g_v': 'fast'}; expected {name: number}"),
+        (_agent({"g_v": 99.0}), "agent0.csv's theta_true: g_v=99 is outside its space"),
+        (_agent({"g_x": 1.0}), "agent0.csv's theta_true: unknown θ parameter 'g_x'"),
+        (["agent0.csv"], "field 'agents' is ['agent0.csv']; expected a list of {file, theta_true}"),
+    ],
+)
+def test_a_mangled_true_theta_exits_2_before_fitting(
+    agents, message, simulated, tmp_path, capsys, monkeypatch
+):
+    def no_work(*args, **kwargs):
+        raise AssertionError("fitted before refusing the true θ")
+
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings._fit_groups", no_work)
+    folder = tmp_path / "sim"
+    folder.mkdir()
+    shutil.copy(simulated / "agent0.csv", folder / "agent0.csv")
+    summary = json.loads((simulated / "summary.json").read_text())
+    (folder / "summary.json").write_text(json.dumps({**summary, "agents": agents}))
+    assert main(["fit", str(folder / "agent0.csv"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"irc fit: error: {folder / 'summary.json'}: ") and message in err, err
 
 
 def _edit(text: str, line: int, column: str, value: str) -> str:

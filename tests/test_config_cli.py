@@ -7,7 +7,14 @@ import pytest
 import yaml
 
 from irc_torchrl.cli import build_parser, main
-from irc_torchrl.config import Firefly1DConfig, config_to_dict, load_config
+from irc_torchrl.config import (
+    Firefly1DConfig,
+    config_to_dict,
+    load_config,
+    load_recording_fit_config,
+    load_recovery2d_config,
+    load_simulate_config,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
@@ -44,13 +51,17 @@ def test_overrides_reach_nested_fields_with_types():
         ("fit.curvature=newton", r"fit.curvature must be one of \('hessian', 'fisher', 'bfgs'\)"),
         ("fit.covariance=robust", r"fit.covariance must be one of \('hessian', 'sandwich'\)"),
         ("seed", "must look like key=value"),
-        ("seed=-1", "seed must be an integer ≥ 0, got -1"),
+        ("seed=-1", r"seed must be an integer in \[0, 2\*\*63\), got -1"),
+        ("seed=9223372036854775808", r"seed must be an integer in \[0, 2\*\*63\), got 92233"),
         ("agents.n_agents=1.5", "agents.n_agents=1.5 is not a valid int"),
         ("agents.n_trials=true", "agents.n_trials=True is not a valid int"),
         ("flush_denormal=ture", "flush_denormal='ture' is not a valid bool"),
         ("threads=0", "threads must be positive, got 0"),
         ("agents.n_agents=0", "agents.n_agents must be positive, got 0"),
         ("agents.temperature=-1", "agents.temperature must be positive, got -1.0"),
+        ("agents.temperature=.inf", "agents.temperature must be finite, got inf"),
+        ("q_iteration.ridge=.inf", "q_iteration.ridge must be ≥ 0 and finite, got inf"),
+        ("q_iteration.ridge=.nan", "q_iteration.ridge must be ≥ 0 and finite, got nan"),
         ("q_iteration.n_envs=-4", "q_iteration.n_envs must be positive, got -4"),
         ("q_iteration.gamma=1.5", r"q_iteration.gamma must lie in \(0, 1\]"),
         ("fit.workers=0", "fit.workers must be positive, got 0"),
@@ -61,6 +72,35 @@ def test_overrides_reach_nested_fields_with_types():
 def test_bad_overrides_are_clear_errors(override, message):
     with pytest.raises((KeyError, ValueError), match=message):
         load_config(overrides=[override])
+
+
+@pytest.mark.parametrize(
+    "load, override, message",
+    [
+        (load_simulate_config, "motor_noise=.inf", "motor_noise must be finite, got inf"),
+        (load_recording_fit_config, "motor_noise=.inf", "motor_noise must be finite, got inf"),
+        (load_recovery2d_config, "motor_noise=.inf", "motor_noise must be > 0 and finite, got inf"),
+    ],
+)
+def test_infinite_numbers_are_refused_naming_the_field(load, override, message):
+    """``.inf`` passes a bare ``> 0`` check and fails mid-run; it is refused before any work."""
+    with pytest.raises(ValueError, match=message):
+        load(overrides=[override])
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "--seed", "99999999999999999999"],
+        ["fit", "absent.csv", "--seed", str(2**63)],
+        ["train", "--seed", "-1"],
+    ],
+)
+def test_seeds_outside_64_bits_exit_2_naming_the_seed(argv, tmp_path, capsys):
+    assert main([*argv, "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"irc {argv[0]}: error: --seed: expected an integer in [0, 2**63), ")
+    assert not (tmp_path / "out").exists()
 
 
 def test_flags_and_numbers_take_their_usual_spellings():

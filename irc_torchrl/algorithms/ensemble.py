@@ -19,7 +19,7 @@ import dataclasses
 import math
 import time
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -64,6 +64,18 @@ __all__ = [
 ]
 
 TASK = "firefly2d"
+#: the entries of its checkpoint a resumed run reads (besides the config and θ space)
+RESUME_ENTRIES = (
+    "loss",
+    "optimiser_actor",
+    "optimiser_critic",
+    "exploration",
+    "best_actor",
+    "counters",
+    "history",
+    "best",
+    "rng",
+)
 
 
 @dataclass
@@ -593,12 +605,15 @@ def _train(
     best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
     env_seed = config.seed
     if resume is not None:
-        ckpt = load_checkpoint(resume, task=TASK, theta_space=model.theta_space)
+        ckpt = load_checkpoint(
+            resume, task=TASK, theta_space=model.theta_space, required=RESUME_ENTRIES
+        )
         _check_networks(ckpt, d)
-        loss.load_state_dict(ckpt["loss"])
-        opt_actor.load_state_dict(ckpt["optimiser_actor"])
-        opt_critic.load_state_dict(ckpt["optimiser_critic"])
-        noise.load_state_dict(ckpt["exploration"])
+        _restore(loss, ckpt, "loss")
+        _restore(opt_actor, ckpt, "optimiser_actor")
+        _restore(opt_critic, ckpt, "optimiser_critic")
+        _restore(noise, ckpt, "exploration")
+        _check_fit(actor, ckpt, "best_actor")
         best_actor = ckpt["best_actor"]
         frames, updates = int(ckpt["counters"]["frames"]), int(ckpt["counters"]["updates"])
         history, best = list(ckpt["history"]), ckpt["best"]
@@ -887,9 +902,54 @@ def _check_networks(ckpt: Mapping[str, Any], d: DDPGConfig) -> None:
             )
 
 
-def _load(source: str | Path) -> tuple[Firefly2DConfig, Firefly2DModel, dict[str, Any]]:
-    """A checkpoint's config and task model, the θ space checked against the config's own."""
-    ckpt = load_checkpoint(source, task=TASK)
+def _restore(target: Any, ckpt: Mapping[str, Any], entry: str, weights: Any = None) -> None:
+    """``target.load_state_dict`` of the checkpoint's ``entry`` (or of ``weights``, taken from
+    it), a module's checked first by :func:`_check_fit`; a refusal is a ValueError naming both."""
+    weights = ckpt[entry] if weights is None else weights
+    if isinstance(target, torch.nn.Module):
+        _check_fit(target, ckpt, entry, weights)
+    try:
+        target.load_state_dict(weights)
+    except (RuntimeError, ValueError, KeyError, TypeError) as error:
+        text = str(error).strip()
+        raise _misfit(ckpt, entry, text.splitlines()[0] if text else type(error).__name__) from None
+
+
+def _check_fit(
+    module: torch.nn.Module, ckpt: Mapping[str, Any], entry: str, weights: Any = None
+) -> None:
+    """Refuse weights (the checkpoint's ``entry``, or ``weights`` taken from it) whose names or
+    shapes are not exactly ``module``'s: TorchRL's losses load missing, extra and broadcastable
+    weights without a word, and a kept policy is only loaded after training."""
+    weights = ckpt[entry] if weights is None else weights
+    if not isinstance(weights, Mapping):
+        raise _misfit(ckpt, entry, f"a {type(weights).__name__}, not a state dict")
+    expected = module.state_dict()
+    missing = [name for name in expected if name not in weights]
+    extra = [name for name in weights if name not in expected]
+    if missing or extra:
+        what, names = ("missing", missing) if missing else ("unexpected", extra)
+        raise _misfit(ckpt, entry, f"{len(names)} weight(s) {what}, e.g. {names[0]!r}")
+    for name, value in expected.items():
+        shape = getattr(weights[name], "shape", None)
+        if shape != value.shape:
+            found = list(shape) if shape is not None else type(weights[name]).__name__
+            raise _misfit(ckpt, entry, f"{name} is {found}, the network's {list(value.shape)}")
+
+
+def _misfit(ckpt: Mapping[str, Any], entry: str, problem: str) -> ValueError:
+    return ValueError(
+        f"checkpoint {ckpt['path']}: entry {entry} does not fit the networks its config builds "
+        f"({problem}); expected the weights irc train saved with that config"
+    )
+
+
+def _load(
+    source: str | Path, required: Sequence[str]
+) -> tuple[Firefly2DConfig, Firefly2DModel, dict[str, Any]]:
+    """A checkpoint holding the entries ``required``: its config and task model, the θ space
+    checked against the config's own."""
+    ckpt = load_checkpoint(source, task=TASK, required=required)
     config = config_from_dict(ckpt["config"])
     model = make_model(config)
     if ThetaSpace.from_config(ckpt["theta_space"]) != model.theta_space:
@@ -909,9 +969,9 @@ def load_ensemble_policy(
     device is.
     """
     with torch.device(device):
-        config, model, ckpt = _load(source)
+        config, model, ckpt = _load(source, ("best_actor",))
         actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
-    actor.load_state_dict(ckpt["best_actor"])
+    _restore(actor, ckpt, "best_actor")
     return actor.requires_grad_(False), model, ckpt
 
 
@@ -923,20 +983,19 @@ def load_ensemble_critic(
     Returns ``(critic, actor, model)``; the critic is ``Q(b, a, θ)`` of that actor (the kept
     policy may be an earlier one).
     """
-    config, model, ckpt = _load(source)
+    config, model, ckpt = _load(source, ("actor", "loss"))
     hidden, activation = config.ddpg.hidden, config.ddpg.activation
     actor, critic = make_actor(model, hidden, activation), make_critic(model, hidden, activation)
-    actor.load_state_dict(ckpt["actor"])
+    _restore(actor, ckpt, "actor")
     # DDPG's critic, or the first of TD3's twin copies (stacked along a leading dimension)
     twin = config.ddpg.loss == "td3"
     prefix = "qvalue_network_params." if twin else "value_network_params."
-    critic.load_state_dict(
-        {
-            k[len(prefix) :]: v[0] if twin else v
-            for k, v in ckpt["loss"].items()
-            if k.startswith(prefix)
-        }
-    )
+    weights = {
+        k[len(prefix) :]: v[0] if twin else v
+        for k, v in ckpt["loss"].items()
+        if k.startswith(prefix)
+    }
+    _restore(critic, ckpt, "loss", weights)
     return critic.requires_grad_(False), actor.requires_grad_(False), model
 
 

@@ -190,8 +190,13 @@ def _units(space: ThetaSpace) -> dict[str, str]:
     return {p.name: p.unit for p in space.parameters}
 
 
-def _simulated_truth(path: Path) -> dict[str, float] | None:
-    """The true θ of a recording written by ``irc simulate`` (its folder's summary), if any."""
+def _simulated_truth(path: Path, space: ThetaSpace) -> torch.Tensor | None:
+    """The true θ of a recording written by ``irc simulate`` (its folder's summary), if any.
+
+    It is checked in ``space`` before any fitting: a summary of ``irc simulate`` that names
+    the recording but mangles its ``theta_true`` is refused, not ignored (the fit would be
+    reported without its truth) nor found out after the fit.
+    """
     summary = path.parent / "summary.json"
     try:
         data = json.loads(summary.read_text())
@@ -199,9 +204,21 @@ def _simulated_truth(path: Path) -> dict[str, float] | None:
         return None
     if not isinstance(data, dict) or data.get("command") != "simulate":
         return None
-    for agent in data.get("agents", []):
-        if agent.get("file") == path.name:
-            return agent.get("theta_true")
+    agents = data.get("agents", [])
+    if not isinstance(agents, list) or not all(isinstance(a, dict) for a in agents):
+        raise ValueError(
+            f"{summary}: field 'agents' is {agents!r:.80}; expected a list of "
+            "{file, theta_true} entries as irc simulate writes them"
+        )
+    for agent in agents:
+        if agent.get("file") == path.name and "theta_true" in agent:
+            truth, where = agent["theta_true"], f"{summary}: {path.name}'s theta_true"
+            numbers = isinstance(truth, dict) and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in truth.values()
+            )
+            if not numbers:
+                raise ValueError(f"{where} is {truth!r:.80}; expected {{name: number}}")
+            return space.from_dict(truth, field=where)
     return None
 
 
@@ -253,11 +270,11 @@ def fit_recordings(
         actor, model, ckpt = load_ensemble_policy(checkpoint)
         actor = actor.to(target)  # whole: calibration's simulations run it as a policy
         space = fit_space(model.theta_space, free, config.theta)
+        truths = [_simulated_truth(p, space) for p in paths]
         start = time.perf_counter()
         units = {str(k): str(v) for k, v in config.units.items()}
         recordings = [read_trials(p, model, units=units) for p in paths]
         read_s = time.perf_counter() - start
-        truths = [_simulated_truth(p) for p in paths]
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
@@ -274,10 +291,7 @@ def fit_recordings(
             timings["calibrate_s"] = time.perf_counter() - start
     timings = {"read_s": read_s, **timings}
     labels = _labels(paths)
-    known = all(t is not None for t in truths)
-    theta_true = (
-        torch.stack([space.from_dict(t, field="theta_true") for t in truths]) if known else None
-    )
+    theta_true = torch.stack(truths) if all(t is not None for t in truths) else None
     by_method = {
         name: _scored(
             space, action_model, result, theta_true, paths, labels, recordings, checks[name]

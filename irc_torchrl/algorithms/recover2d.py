@@ -11,6 +11,7 @@ beliefs recovered under θ̂ are compared with the beliefs the agents really hel
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from collections.abc import Callable
@@ -147,8 +148,8 @@ class Recovery2DConfig:
             raise ValueError("config: n_prior_agents and n_mistaken_agents must be ≥ 0")
         if self.n_prior_agents + self.n_mistaken_agents < 1:
             raise ValueError("config: n_prior_agents + n_mistaken_agents must be ≥ 1")
-        if not self.motor_noise > 0:
-            raise ValueError(f"config: motor_noise must be > 0, got {self.motor_noise}")
+        if not 0 < self.motor_noise < math.inf:
+            raise ValueError(f"config: motor_noise must be > 0 and finite, got {self.motor_noise}")
         _probability(lapse=self.lapse)
         self.fit.validate()
         _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)

@@ -44,8 +44,20 @@ def write_nwb(
     time_column: str = "time",
     trial_column: str = "trial",
 ) -> None:
-    """Write the schema's table (one row per step) to the NWB file ``path``."""
+    """Write the schema's table (one row per step) to the NWB file ``path``.
+
+    Trial numbers must be integers: they become the trials table's ids, and ``0.1`` and
+    ``0.2`` would both be written as trial 0, a file that cannot be read back.
+    """
     trials = columns[trial_column]
+    ids = np.asarray(trials, dtype=np.float64)
+    bad = ~np.isfinite(ids) | (ids != np.round(ids))
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"NWB: field {trial_column!r} is {ids[row]} at row {row}; expected integer trial "
+            "numbers (the ids of the NWB trials table)"
+        )
     labels = list(dict.fromkeys(trials.tolist()))
     time = columns[time_column].astype(np.float64)
     session = np.empty_like(time)
