@@ -120,6 +120,12 @@ def load_checkpoint(
         found = data.get("format") if isinstance(data, dict) else type(data).__name__
         raise ValueError(f"checkpoint {path}: format is {found!r}, expected {FORMAT!r}")
     _require(path, data, HEADER)
+    for name in ("config", "theta_space"):
+        if not isinstance(data[name], dict):
+            raise ValueError(
+                f"checkpoint {path}: entry {name} is a {type(data[name]).__name__}; expected "
+                "a mapping, as irc train writes it"
+            )
     if _major(data["version"]) != _major(irc_torchrl.__version__):
         raise ValueError(
             f"checkpoint {path}: version {data['version']} was written by another major version "

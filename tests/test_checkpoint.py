@@ -151,6 +151,22 @@ def test_missing_entries_are_named(tmp_path, trained):
         train_ensemble(tiny(), out=tmp_path / "run", resume=path, progress=False)
 
 
+def test_a_config_or_theta_space_that_is_not_irc_trains_is_refused(tmp_path, trained):
+    def listed(payload):
+        payload["config"] = list(payload["config"].items())
+
+    with pytest.raises(ValueError, match=r"edited.pt: entry config is a list; expected a mapping"):
+        load_checkpoint(_edited(trained, tmp_path, listed))
+
+    def mangled(payload):
+        payload["config"]["ddpg"]["gamma"] = 7.0
+
+    with pytest.raises(
+        ValueError, match=r"edited.pt: entry config is not a config irc train writes .*ddpg.gamma"
+    ):
+        load_ensemble_policy(_edited(trained, tmp_path, mangled))
+
+
 @pytest.mark.parametrize("entry", ["best_actor", "actor", "loss"])
 def test_weights_that_do_not_fit_their_config_are_refused(tmp_path, trained, entry):
     def shrink(payload):

@@ -65,6 +65,8 @@ def test_shipped_checkpoint_was_trained_by_the_default_config():
         ("ddpg.loss=sac", "ddpg.loss must be 'ddpg' or 'td3'"),
         ("ddpg.policy_delay=0", "ddpg.policy_delay must be positive"),
         ("ddpg.noise_clip=-0.1", "ddpg.noise_clip must be ≥ 0"),
+        ("ddpg.lr_actor=.inf", "ddpg.lr_actor must be finite"),
+        ("ddpg.bc_weight=.inf", "ddpg.bc_weight must be finite"),
     ],
 )
 def test_bad_config_is_a_clear_error(override, message):

@@ -237,6 +237,8 @@ class Firefly2DConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise ValueError(f"config: {name} must be positive, got {value}")
+            if not math.isfinite(value):
+                raise ValueError(f"config: {name} must be finite, got {value}")
         for name, value in {
             "ddpg.bc_weight": d.bc_weight,
             "ddpg.bc_updates": d.bc_updates,
@@ -251,6 +253,8 @@ class Firefly2DConfig:
         }.items():
             if not value >= 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {value}")
+            if not math.isfinite(value):
+                raise ValueError(f"config: {name} must be finite, got {value}")
         for name, value in {"ddpg.gamma": d.gamma, "ddpg.tau": d.tau}.items():
             if not 0 < value <= 1:
                 raise ValueError(f"config: {name} must lie in (0, 1], got {value}")
@@ -950,8 +954,13 @@ def _load(
     """A checkpoint holding the entries ``required``: its config and task model, the θ space
     checked against the config's own."""
     ckpt = load_checkpoint(source, task=TASK, required=required)
-    config = config_from_dict(ckpt["config"])
-    model = make_model(config)
+    try:
+        config = config_from_dict(ckpt["config"])
+        model = make_model(config.validate())
+    except (TypeError, ValueError) as error:
+        raise ValueError(
+            f"checkpoint {ckpt['path']}: entry config is not a config irc train writes ({error})"
+        ) from None
     if ThetaSpace.from_config(ckpt["theta_space"]) != model.theta_space:
         raise ValueError(
             f"checkpoint {ckpt['path']}: theta_space does not match its own config's θ space"
