@@ -28,6 +28,7 @@ __all__ = [
     "FORMAT",
     "HEADER",
     "PACKAGED",
+    "first_line",
     "load_checkpoint",
     "resolve_checkpoint",
     "save_checkpoint",
@@ -164,16 +165,17 @@ def _read(path: Path) -> Any:
     except pickle.UnpicklingError as error:
         raise ValueError(
             f"checkpoint {path}: refused to load; it is not plain weights-only data "
-            f"({_first_line(error)})"
+            f"({first_line(error)})"
         ) from None
     except Exception as error:  # torch and zipfile raise many types for a damaged file
         raise ValueError(
             f"checkpoint {path}: not a readable irc_torchrl checkpoint "
-            f"(truncated or corrupt: {_first_line(error)}); expected a file written by irc train"
+            f"(truncated or corrupt: {first_line(error)}); expected a file written by irc train"
         ) from None
 
 
-def _first_line(error: Exception) -> str:
+def first_line(error: Exception) -> str:
+    """An exception's message in one line (its first), or its type where it has none."""
     text = str(error).strip()
     return text.splitlines()[0] if text else type(error).__name__
 

@@ -38,7 +38,7 @@ from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueE
 
 import irc_torchrl
 from irc_torchrl.algorithms.runtime import torch_settings
-from irc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
 from irc_torchrl.envs.firefly2d import Firefly2DEnv, Firefly2DModel, firefly2d_theta_space
@@ -915,8 +915,7 @@ def _restore(target: Any, ckpt: Mapping[str, Any], entry: str, weights: Any = No
     try:
         target.load_state_dict(weights)
     except (RuntimeError, ValueError, KeyError, TypeError) as error:
-        text = str(error).strip()
-        raise _misfit(ckpt, entry, text.splitlines()[0] if text else type(error).__name__) from None
+        raise _misfit(ckpt, entry, first_line(error)) from None
 
 
 def _check_fit(
