@@ -617,7 +617,7 @@ def _train(
         _restore(opt_actor, ckpt, "optimiser_actor")
         _restore(opt_critic, ckpt, "optimiser_critic")
         _restore(noise, ckpt, "exploration")
-        _check_fit(actor, ckpt, "best_actor")
+        _check_fit(actor, ckpt, "best_actor", ckpt["best_actor"])
         best_actor = ckpt["best_actor"]
         frames, updates = int(ckpt["counters"]["frames"]), int(ckpt["counters"]["updates"])
         history, best = list(ckpt["history"]), ckpt["best"]
@@ -918,13 +918,10 @@ def _restore(target: Any, ckpt: Mapping[str, Any], entry: str, weights: Any = No
         raise _misfit(ckpt, entry, first_line(error)) from None
 
 
-def _check_fit(
-    module: torch.nn.Module, ckpt: Mapping[str, Any], entry: str, weights: Any = None
-) -> None:
-    """Refuse weights (the checkpoint's ``entry``, or ``weights`` taken from it) whose names or
-    shapes are not exactly ``module``'s: TorchRL's losses load missing, extra and broadcastable
+def _check_fit(module: torch.nn.Module, ckpt: Mapping[str, Any], entry: str, weights: Any) -> None:
+    """Refuse ``weights`` (the checkpoint's ``entry``, or taken from it) whose names or shapes
+    are not exactly ``module``'s: TorchRL's losses load missing, extra and broadcastable
     weights without a word, and a kept policy is only loaded after training."""
-    weights = ckpt[entry] if weights is None else weights
     if not isinstance(weights, Mapping):
         raise _misfit(ckpt, entry, f"a {type(weights).__name__}, not a state dict")
     expected = module.state_dict()
