@@ -58,7 +58,8 @@ def _train(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.ensemble import train_ensemble
     from irc_torchrl.config import load_firefly2d_config
 
-    config = load_firefly2d_config(args.config, args.overrides)
+    device = [f"device={args.device}"] if args.device is not None else []
+    config = load_firefly2d_config(args.config, [*args.overrides, *device])
     result = train_ensemble(
         config, out=args.out, resume=args.resume, progress=not args.quiet, seed=args.seed
     )
@@ -280,6 +281,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", default="runs/train", help="output folder (default runs/train)")
     train.add_argument("--resume", default=None, help="a checkpoint to continue from")
     train.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    train.add_argument(
+        "--device",
+        default=None,
+        help="torch device to train on, e.g. cuda:0 (default: the config's, cpu)",
+    )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.add_argument(
         "overrides", nargs="*", metavar="key=value", help="config overrides, e.g. ddpg.n_envs=128"

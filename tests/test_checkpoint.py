@@ -60,6 +60,26 @@ def test_round_trip_restores_weights_and_counters(trained):
     assert isinstance(ckpt["rng"]["torch"], torch.Tensor)
 
 
+def test_a_checkpoint_trained_on_a_gpu_loads_on_the_cpu(trained, tmp_path):
+    # its config names a device this machine lacks: that is where it trained, not a demand
+    result, out = trained
+    ckpt = load_checkpoint(out / "checkpoint.pt", task="firefly2d")
+    config = {**ckpt["config"], "device": "cuda:0"}
+    kept = ("format", "task", "version", "theta_space", "config", "path")
+    state = {k: v for k, v in ckpt.items() if k not in kept}
+    path = save_checkpoint(
+        tmp_path / "gpu.pt",
+        task="firefly2d",
+        theta_space=result.model.theta_space,
+        config=config,
+        state=state,
+    )
+    actor, _, loaded = load_ensemble_policy(path)
+    assert loaded["config"]["device"] == "cuda:0"
+    for name, value in result.actor.state_dict().items():
+        assert torch.equal(actor.state_dict()[name], value)
+
+
 def test_mismatched_task_and_theta_space_are_clear_errors(trained):
     _, out = trained
     with pytest.raises(ValueError, match="task is 'firefly2d', expected 'firefly1d'"):

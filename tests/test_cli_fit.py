@@ -273,6 +273,10 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["train", "evaluation.seed=-1"], "evaluation.seed must be an integer in [0, 2**63)"),
         (["train", "flush_denormal=ture"], "flush_denormal='ture' is not a valid bool"),
         (["train", "n_envs=[1"], "override 'n_envs=[1' is not valid YAML"),
+        (["train", "--device", "cuda:0"], "device: 'cuda:0' requested but"),
+        (["train", "--device", "meta"], "device: 'meta' tensors hold no values"),
+        (["train", "device=nowhere"], "config: device must name a torch device"),
+        (["train", "--device", "cuda", "ddpg.collector_workers=2"], "collector_workers must be 1"),
     ],
 )
 def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_path, capsys):

@@ -76,3 +76,38 @@ def test_recovery_runs_where_its_config_says():
         got, want = summary["methods"][method], expected["methods"][method]
         assert got["agents"] == want["agents"]
         assert got["calibrated"]["factor"] == want["calibrated"]["factor"]
+
+
+def test_training_runs_where_its_config_says(tmp_path, monkeypatch):
+    """Algorithm 1 (collector, n-step replay, DDPG updates, evaluation, the kept policy's
+    report) on the config's device: nothing lands on the default device, the numbers agree."""
+    import json
+
+    from test_checkpoint import tiny
+    from torchrl.collectors.utils import _TrajectoryPool
+
+    from irc_torchrl.algorithms.ensemble import train_ensemble
+
+    # TorchRL's trajectory counter makes its ids on the default device and then moves them to
+    # the collector's: harmless on a GPU, impossible from meta tensors
+    count = _TrajectoryPool.get_traj_and_increment
+
+    def on_cpu(self, *args, **kwargs):
+        with torch.device("cpu"):
+            return count(self, *args, **kwargs)
+
+    monkeypatch.setattr(_TrajectoryPool, "get_traj_and_increment", on_cpu)
+    config = tiny("device=cpu")
+    expected = train_ensemble(config, out=tmp_path / "plain", progress=False)
+    with torch.device("meta"):
+        got = train_ensemble(config, out=tmp_path / "meta", progress=False)
+    for name, value in expected.actor.state_dict().items():
+        assert got.actor.state_dict()[name].device.type == "cpu"
+        assert torch.equal(got.actor.state_dict()[name], value)
+    for name, value in expected.critic.state_dict().items():
+        assert torch.equal(got.critic.state_dict()[name], value)
+    returns = [[row["mean_return"] for row in r.history] for r in (got, expected)]
+    assert returns[0] == returns[1]
+    reports = [json.loads((tmp_path / f / "summary.json").read_text()) for f in ("meta", "plain")]
+    for key in ("theta_sensitivity", "stop_sharpness"):
+        assert reports[0][key] == reports[1][key]

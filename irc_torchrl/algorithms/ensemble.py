@@ -37,7 +37,7 @@ from torchrl.modules import AdditiveGaussianModule
 from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueEstimators
 
 import irc_torchrl
-from irc_torchrl.algorithms.runtime import torch_settings
+from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
@@ -197,6 +197,8 @@ class Firefly2DConfig:
     threads: int = 1
     #: flush denormal floats to zero (they made early CPU runs 5-10× slower)
     flush_denormal: bool = True
+    #: torch device to train on, e.g. "cpu" or "cuda:0" (the checkpoint loads anywhere)
+    device: str = "cpu"
     #: θ parameters held fixed beyond the task's own ({name: value}); all fixed = a specialist
     theta_fixed: dict = field(default_factory=dict)
     #: write a checkpoint every this many gradient updates (and at the end)
@@ -263,6 +265,18 @@ class Firefly2DConfig:
                 f"config: ddpg.buffer_size={d.buffer_size} must hold a batch, "
                 f"ddpg.batch_size={d.batch_size}"
             )
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(
+                f"config: device must name a torch device such as 'cpu' or 'cuda:0', "
+                f"got {self.device!r}"
+            ) from None
+        if d.collector_workers > 1 and device.type != "cpu":
+            raise ValueError(
+                f"config: ddpg.collector_workers must be 1 on {device} (collector processes "
+                f"share CPU cores), got {d.collector_workers}"
+            )
         if d.n_envs % d.collector_workers:
             raise ValueError(
                 f"config: ddpg.n_envs={d.n_envs} must be a multiple of "
@@ -310,9 +324,11 @@ def make_model(config: Firefly2DConfig) -> Firefly2DModel:
     return Firefly2DModel(theta_space=space)
 
 
-def make_train_env(model: Firefly2DModel, n_envs: int, seed: int) -> EnvBase:
+def make_train_env(
+    model: Firefly2DModel, n_envs: int, seed: int, device: torch.device | str = "cpu"
+) -> EnvBase:
     """The training world: θ from the prior per trial, the EKF belief, the belief reward."""
-    env = Firefly2DEnv(model=model, batch_size=(n_envs,), seed=seed)
+    env = Firefly2DEnv(model=model, batch_size=(n_envs,), seed=seed, device=device)
     return TransformedEnv(env, Compose(EKFBelief(model), BeliefReward(model)))
 
 
@@ -328,8 +344,8 @@ def theta_grid(space: ThetaSpace, n: int, seed: int) -> torch.Tensor:
     for i, name in enumerate(space.names):
         if name in space.fixed:
             continue
-        strata = torch.randperm(n, generator=generator).float()
-        u = (strata + torch.rand(n, generator=generator)) / n
+        strata = torch.randperm(n, generator=generator, device="cpu").float()
+        u = (strata + torch.rand(n, generator=generator, device="cpu")) / n
         theta[:, i] = low[i] + u * (high[i] - low[i])
     return theta
 
@@ -358,7 +374,7 @@ def evaluate_policy(
     batch = rollout.shape[0]
     last = alive.sum(-1) - 1
     returns = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1)
-    end = rollout[torch.arange(batch), last]
+    end = rollout[torch.arange(batch, device=last.device), last]
     space = model.theta_space
     radius = end["task_theta"][..., space.index("goal_radius")]
     inside = (end["state"][..., :2] - end["target"]).norm(dim=-1) < radius
@@ -441,7 +457,7 @@ def _sharpness(
     model: Firefly2DModel, rollout: TensorDictBase, alive: torch.Tensor
 ) -> dict[str, float | None]:
     last = alive.sum(-1) - 1  # the last step of each row's first trial
-    rows = torch.arange(last.shape[0])
+    rows = torch.arange(last.shape[0], device=last.device)
     action, step = rollout["action"][rows, last], rollout["step"][rows, last]
     stopped = model.stops(action, step).squeeze(-1)
     before = rollout["action"][rows, last - 1][stopped, 0]
@@ -492,13 +508,16 @@ def _first_trials(
     batch = thetas.shape[0] * trials_per_theta
     theta = thetas.float().repeat_interleave(trials_per_theta, 0)
     env = TransformedEnv(
-        Firefly2DEnv(model=model, batch_size=(batch,), theta=theta, seed=seed), EKFBelief(model)
+        Firefly2DEnv(
+            model=model, batch_size=(batch,), theta=theta, seed=seed, device=thetas.device
+        ),
+        EKFBelief(model),
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
     done = rollout["next", "done"].squeeze(-1)
     last = done.int().argmax(-1)  # the first done of each row: the end of its first trial
-    return rollout, torch.arange(done.shape[-1]) <= last.unsqueeze(-1)
+    return rollout, torch.arange(done.shape[-1], device=done.device) <= last.unsqueeze(-1)
 
 
 @dataclass
@@ -578,32 +597,38 @@ def train_ensemble(
     if seed is not None:
         config.seed = int(seed)
     config.validate()
+    device = resolve_device(config.device)
     out = Path(out) if out is not None else None
     with torch_settings(config.threads, config.flush_denormal), torch.random.fork_rng():
-        return _train(config, out, resume, progress)
+        return _train(config, device, out, resume, progress)
 
 
 def _train(
-    config: Firefly2DConfig, out: Path | None, resume: str | Path | None, progress: bool
+    config: Firefly2DConfig,
+    device: torch.device,
+    out: Path | None,
+    resume: str | Path | None,
+    progress: bool,
 ) -> TrainResult:
     d, e = config.ddpg, config.evaluation
-    model = make_model(config)
     torch.manual_seed(config.seed)
-    actor = make_actor(model, d.hidden, d.activation)
-    critic = make_critic(model, d.hidden, d.activation)
-    noise = AdditiveGaussianModule(
-        model.action_spec,
-        sigma_init=d.sigma_init,
-        sigma_end=d.sigma_end,
-        annealing_num_steps=d.anneal_frames,
-    )
+    with torch.device(device):  # TorchRL's modules and specs are built on the default device
+        model = make_model(config)
+        actor = make_actor(model, d.hidden, d.activation)
+        critic = make_critic(model, d.hidden, d.activation)
+        noise = AdditiveGaussianModule(
+            model.action_spec,
+            sigma_init=d.sigma_init,
+            sigma_end=d.sigma_end,
+            annealing_num_steps=d.anneal_frames,
+        )
+        loss, critic_params, value_key, value_loss = _make_loss(model, actor, critic, d)
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=d.gamma)
+        target_update = SoftUpdate(loss, tau=d.tau)
     explore = TensorDictSequential(actor, noise)
-    loss, critic_params, value_key, value_loss = _make_loss(model, actor, critic, d)
-    loss.make_value_estimator(ValueEstimators.TD0, gamma=d.gamma)
-    target_update = SoftUpdate(loss, tau=d.tau)
     opt_actor = torch.optim.Adam(loss.actor_network_params.values(True, True), lr=d.lr_actor)
     opt_critic = torch.optim.Adam(critic_params.values(True, True), lr=d.lr_critic)
-    thetas = theta_grid(model.theta_space, e.n_theta, e.seed)
+    thetas = theta_grid(model.theta_space, e.n_theta, e.seed).to(device)
 
     frames, updates, history, best = 0, 0, [], None
     best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
@@ -622,6 +647,8 @@ def _train(
         frames, updates = int(ckpt["counters"]["frames"]), int(ckpt["counters"]["updates"])
         history, best = list(ckpt["history"]), ckpt["best"]
         torch.set_rng_state(ckpt["rng"]["torch"])
+        if device.type == "cuda" and "cuda" in ckpt["rng"]:
+            torch.cuda.set_rng_state(ckpt["rng"]["cuda"], device)
         # a fresh world stream for the trials after the resume, derived from the counters
         env_seed = config.seed + 7919 * (updates + 1)
 
@@ -629,7 +656,7 @@ def _train(
     remaining = max(d.total_frames - frames, 0)
     remaining = math.ceil(remaining / frames_per_batch) * frames_per_batch
     buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(d.buffer_size), batch_size=d.batch_size
+        storage=LazyTensorStorage(d.buffer_size, device=device), batch_size=d.batch_size
     )
     logger = _Logger(config.logger, out)
     bar = _progress_bar(progress, d.total_frames, frames)
@@ -648,7 +675,7 @@ def _train(
             "optimiser_critic": opt_critic.state_dict(),
             "exploration": noise.state_dict(),
             "counters": {"frames": frames, "updates": updates},
-            "rng": {"torch": torch.get_rng_state()},
+            "rng": {"torch": torch.get_rng_state(), **_device_rng_state(device)},
             "history": history,
             "best": best,
         }
@@ -684,12 +711,11 @@ def _train(
     warmup = min(d.warmup_frames, d.buffer_size)
     teacher = BeliefPursuit(model) if d.warmup_policy == "pursuit" else None
     if resume is None and teacher is not None:
-        seeding = TensorDictSequential(
-            teacher,
-            AdditiveGaussianModule(
+        with torch.device(device):
+            jitter = AdditiveGaussianModule(
                 model.action_spec, sigma_init=d.warmup_sigma, sigma_end=d.warmup_sigma
-            ),
-        )
+            )
+        seeding = TensorDictSequential(teacher, jitter)
         warmup_collector = _make_collector(config, model, seeding, env_seed + 1, warmup, False)
         warmup_steps = MultiStepTransform(d.n_steps, d.gamma)
         for batch in warmup_collector:
@@ -770,6 +796,11 @@ def _train(
     return TrainResult(
         actor, critic, model, config, history, best, frames, updates, checkpoint_path
     )
+
+
+def _device_rng_state(device: torch.device) -> dict[str, torch.Tensor]:
+    """The random state of ``device`` beside the CPU's (exploration noise is drawn there)."""
+    return {"cuda": torch.cuda.get_rng_state(device)} if device.type == "cuda" else {}
 
 
 def _make_loss(
@@ -875,19 +906,20 @@ def _make_collector(
     random_start: bool,
 ):
     """A ``Collector`` (or ``MultiSyncCollector`` over processes) over the training world."""
-    d = config.ddpg
+    d, device = config.ddpg, torch.device(config.device)
     workers = d.collector_workers
     common = {
         "frames_per_batch": d.n_envs * d.steps_per_batch,
         "total_frames": max(total_frames, d.n_envs * d.steps_per_batch),
         "init_random_frames": d.warmup_frames if random_start else 0,
         "auto_register_policy_transforms": False,
+        "device": device,  # where the policy runs and the batches are stored
     }
     if workers == 1:
-        collector = Collector(make_train_env(model, d.n_envs, seed), policy, **common)
+        collector = Collector(make_train_env(model, d.n_envs, seed, device), policy, **common)
     else:
         makers = [
-            partial(make_train_env, model, d.n_envs // workers, seed + 104729 * i)
+            partial(make_train_env, model, d.n_envs // workers, seed + 104729 * i, device)
             for i in range(workers)
         ]
         collector = MultiSyncCollector(makers, policy, **common)
