@@ -60,24 +60,35 @@ def test_round_trip_restores_weights_and_counters(trained):
     assert isinstance(ckpt["rng"]["torch"], torch.Tensor)
 
 
-def test_a_checkpoint_trained_on_a_gpu_loads_on_the_cpu(trained, tmp_path):
-    # its config names a device this machine lacks: that is where it trained, not a demand
+def test_a_checkpoint_trained_on_a_gpu_loads_and_resumes_on_the_cpu(
+    trained, tmp_path, monkeypatch
+):
+    """A GPU run's file (its tensors tagged cuda:0, the GPU's random state, its config naming a
+    device this machine lacks) loads here, and a resume continues on the config's device."""
     result, out = trained
     ckpt = load_checkpoint(out / "checkpoint.pt", task="firefly2d")
-    config = {**ckpt["config"], "device": "cuda:0"}
     kept = ("format", "task", "version", "theta_space", "config", "path")
     state = {k: v for k, v in ckpt.items() if k not in kept}
-    path = save_checkpoint(
-        tmp_path / "gpu.pt",
-        task="firefly2d",
-        theta_space=result.model.theta_space,
-        config=config,
-        state=state,
-    )
-    actor, _, loaded = load_ensemble_policy(path)
-    assert loaded["config"]["device"] == "cuda:0"
+    state["rng"] = {**state["rng"], "cuda": torch.zeros(16, dtype=torch.uint8)}
+    with monkeypatch.context() as patch:  # torch.save tags each tensor with its device
+        patch.setattr(torch.serialization, "location_tag", lambda storage: "cuda:0")
+        path = save_checkpoint(
+            tmp_path / "gpu.pt",
+            task="firefly2d",
+            theta_space=result.model.theta_space,
+            config={**ckpt["config"], "device": "cuda:0"},
+            state=state,
+        )
+    with pytest.raises(RuntimeError):  # the tags are real: torch alone would want the GPU
+        torch.load(path, weights_only=True)
+    actor, _, _ = load_ensemble_policy(path)
+    critic, _, _ = load_ensemble_critic(path)
     for name, value in result.actor.state_dict().items():
         assert torch.equal(actor.state_dict()[name], value)
+    assert next(critic.parameters()).device.type == "cpu"
+    with pytest.warns(UserWarning, match="was trained on cuda:0; continuing on cpu"):
+        resumed = train_ensemble(tiny(), resume=path, progress=False)
+    assert resumed.updates == result.updates
 
 
 def test_mismatched_task_and_theta_space_are_clear_errors(trained):

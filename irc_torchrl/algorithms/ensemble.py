@@ -272,6 +272,11 @@ class Firefly2DConfig:
                 f"config: device must name a torch device such as 'cpu' or 'cuda:0', "
                 f"got {self.device!r}"
             ) from None
+        if device.type not in ("cpu", "cuda"):
+            raise ValueError(
+                f"config: device must be 'cpu' or a 'cuda' device (the task's filter runs in "
+                f"float64), got {self.device!r}"
+            )
         if d.collector_workers > 1 and device.type != "cpu":
             raise ValueError(
                 f"config: ddpg.collector_workers must be 1 on {device} (collector processes "
@@ -646,11 +651,21 @@ def _train(
         best_actor = ckpt["best_actor"]
         frames, updates = int(ckpt["counters"]["frames"]), int(ckpt["counters"]["updates"])
         history, best = list(ckpt["history"]), ckpt["best"]
-        torch.set_rng_state(ckpt["rng"]["torch"])
-        if device.type == "cuda" and "cuda" in ckpt["rng"]:
-            torch.cuda.set_rng_state(ckpt["rng"]["cuda"], device)
         # a fresh world stream for the trials after the resume, derived from the counters
         env_seed = config.seed + 7919 * (updates + 1)
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        if device.type == "cuda":  # a run from the CPU has no GPU stream: one from the counters
+            if "cuda" in ckpt["rng"]:
+                torch.cuda.set_rng_state(ckpt["rng"]["cuda"], device)
+            else:
+                torch.cuda.manual_seed(env_seed)
+        trained_on = str(ckpt["config"].get("device", "cpu"))
+        if trained_on.split(":")[0] != device.type:
+            warnings.warn(
+                f"resume: {ckpt['path']} was trained on {trained_on}; continuing on {device} "
+                "(the config's device)",
+                stacklevel=3,
+            )
 
     frames_per_batch = d.n_envs * d.steps_per_batch
     remaining = max(d.total_frames - frames, 0)
