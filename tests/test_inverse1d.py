@@ -169,6 +169,24 @@ def test_shared_world_adds_the_gaussian_transition_density(firefly1d_model, trai
     assert (trials["mask"][..., 1:].sum((1, 2)) > 0).all()  # some transitions were scored
 
 
+def test_nan_after_the_end_of_a_trial_leaves_the_shared_world_gradient_finite(
+        firefly1d_model, trained_q, small_trials, agents):
+    # the transition density is masked after a trial's end, yet 0 × NaN would still poison
+    # its gradient: a NaN there must change neither the value nor the gradient
+    nuisance = torch.full((3, 1), math.log(TEMPERATURE), dtype=torch.float64)
+    padded = small_trials.clone()
+    padded["state"][~padded["mask"]] = float("nan")
+    assert (~padded["mask"]).any()
+    grads = []
+    for trials in (small_trials, padded):
+        theta = agents.double().requires_grad_(True)
+        ll = make_loss(firefly1d_model, trained_q, 3, "shared").log_likelihood(
+            theta, nuisance, trials)
+        ll.sum().backward()
+        grads.append((ll.detach(), theta.grad))
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=1e-12)
+
+
 def test_loss_module_forward(firefly1d_model, trained_q, small_trials):
     loss = make_loss(firefly1d_model, trained_q, 3)
     out = loss(small_trials)

@@ -342,6 +342,11 @@ class InverseRationalLoss(LossModule):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per trial ``Σ log N(s_{t+1}; f(s_t, a_t, θ), Q(θ))`` over consecutive valid steps,
         and the same for next states drawn from that Gaussian with ``generator`` (else 0)."""
+        # steps after a trial's end may hold anything, NaN too: a masked NaN still poisons
+        # the gradient (0 × NaN), so they are zeroed before they are read
+        state = state.masked_fill(~mask.unsqueeze(-1), 0)
+        if action.is_floating_point():
+            action = action.masked_fill(~mask.view(*mask.shape, *[1] * (action.ndim - 3)), 0)
         prev, nxt = state[:, :, :-1], state[:, :, 1:]
         theta_t = theta_b.unsqueeze(2).expand(*prev.shape[:3], -1)
         mean = self.model.transition(prev, action[:, :, :-1], theta_t)
