@@ -351,7 +351,11 @@ def _check_arguments(args: argparse.Namespace) -> None:
         written_by = json.loads((out / "summary.json").read_text()).get("command")
     except (OSError, ValueError, AttributeError):
         return
-    if written_by is not None and written_by != args.command:
+    # `irc demo --task firefly2d` is a short `irc recover`: either may redo the other's folder
+    family = {"demo": "recover"}
+    if written_by is not None and family.get(written_by, written_by) != family.get(
+        args.command, args.command
+    ):
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"

@@ -298,6 +298,12 @@ def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_
     assert main([*fit, str(simulated)]) == 2  # would overwrite the true θ of the recordings
     assert "holds the summary.json of irc simulate" in capsys.readouterr().err
     assert (simulated / "summary.json").read_text() == truth
+    for command in ("demo", "recover", "train"):  # each run's summary says what wrote it
+        run = tmp_path / command
+        run.mkdir()
+        (run / "summary.json").write_text(f'{{"command": "{command}"}}')
+        assert main(["simulate", "--quiet", "--out", str(run)]) == 2
+        assert f"holds the summary.json of irc {command}" in capsys.readouterr().err
 
 
 def test_a_rerun_of_simulate_drops_the_old_summary_before_writing(tmp_path, monkeypatch):

@@ -140,7 +140,7 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
         assert main(["demo", "--out", str(out), "--quiet", "--seed", "3", *TINY]) == 0
         runs.append(json.loads((out / "summary.json").read_text()))
     summary = runs[0]
-    assert (summary["task"], summary["seed"]) == ("firefly1d", 3)
+    assert (summary["command"], summary["task"], summary["seed"]) == ("demo", "firefly1d", 3)
     assert len(summary["agents"]) == 3
     agent = summary["agents"][0]
     for key in ("theta_true", "theta_hat", "ci_low", "ci_high"):

@@ -194,6 +194,7 @@ def test_cloning_runs_at_lr_clone_and_ddpg_at_lr_actor(tmp_path):
 def test_training_summary_holds_the_kept_policys_theta_sensitivity_and_stop(tmp_path):
     result = train_ensemble(tiny("logger=none"), out=tmp_path, progress=False, seed=5)
     summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["command"] == "train"
     grid, e = torch.tensor(summary["theta_grid"]), result.config.evaluation
     args = (result.model, result.actor, grid, e.trials_per_theta, e.seed)
     assert summary["theta_sensitivity"] == theta_sensitivity(*args)

@@ -111,6 +111,21 @@ def test_atomic_write_leaves_nothing_when_the_writer_fails(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
 
 
+def test_summaries_are_strict_json_with_null_for_numbers_that_are_not_finite(tmp_path):
+    import json
+
+    data = {"std": {"g_v": float("inf"), "sigma_v": 0.1}, "bounds": [float("nan"), (-1.0, 2)]}
+    path = write_json(tmp_path / "summary.json", data)
+
+    def refuse(constant):
+        raise ValueError(f"not strict JSON: {constant}")
+
+    assert json.loads(path.read_text(), parse_constant=refuse) == {
+        "std": {"g_v": None, "sigma_v": 0.1},
+        "bounds": [None, [-1.0, 2]],
+    }
+
+
 def test_atomic_write_gives_the_usual_file_mode(tmp_path):
     import os
 

@@ -74,6 +74,7 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
             model, q, config.agents, config.fit, config.seed, progress=lambda i, n: bar.update(1)
         )
     summary = {
+        "command": "demo",
         "task": config.task,
         "method": "exact",
         "seed": config.seed,

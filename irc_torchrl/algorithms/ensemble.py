@@ -794,6 +794,7 @@ def _train(
         write_json(
             out / "summary.json",
             {
+                "command": "train",
                 "task": TASK,
                 "seed": config.seed,
                 "version": irc_torchrl.__version__,

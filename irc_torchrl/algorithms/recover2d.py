@@ -503,7 +503,7 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
         trials = trials.cpu()
         for bar in bars.values():
             bar.close()
-    write_json(out / "summary.json", summary)
+    write_json(out / "summary.json", {"command": "recover", **summary})
     with atomic_dir(out / "trials") as folder:
         trials.memmap(folder)
     for method, entry in summary["methods"].items():
