@@ -122,8 +122,10 @@ class Firefly1DConfig:
             raise ValueError(f"config: q_iteration.gamma must lie in (0, 1], got {q.gamma}")
         if not 0 <= q.epsilon <= 1:
             raise ValueError(f"config: q_iteration.epsilon must lie in [0, 1], got {q.epsilon}")
-        if not 0 <= q.ridge < math.inf:
-            raise ValueError(f"config: q_iteration.ridge must be ≥ 0 and finite, got {q.ridge}")
+        if not 0 < q.ridge < math.inf:  # without it a design of few samples is singular
+            raise ValueError(
+                f"config: q_iteration.ridge must be positive and finite, got {q.ridge}"
+            )
         if a.world not in ("known", "shared"):
             raise ValueError(f"config: agents.world must be 'known' or 'shared', got {a.world!r}")
         self.fit.validate()

@@ -215,3 +215,11 @@ def test_training_is_deterministic_for_a_seed():
 def test_optimal_values_validates_theta(bad):
     with pytest.raises(ValueError, match="g_a"):
         optimal_values(Firefly1DModel(), bad, torch.zeros(1))
+
+
+def test_a_basis_of_one_is_the_constant_feature():
+    # n_basis counts the constant feature: one basis function is that feature alone
+    q = FactorisedQ(belief_dim=2, theta_dim=1, n_actions=3, n_belief_basis=1, n_theta_basis=1)
+    features = torch.randn(4, 3)
+    assert torch.equal(q.phi(features[:, :2]), torch.ones(4, 1))
+    assert q(features).shape == (4, 3)

@@ -183,6 +183,21 @@ def test_reset_kwargs_through_transformed_env():
     assert not torch.equal(env.reset()["theta"], agent.expand(4, -1))
 
 
+@pytest.mark.parametrize(
+    "argument, message",
+    [
+        ({"max_steps": 0}, "max_steps: expected an integer ≥ 1, got 0"),
+        ({"max_steps": 2.5}, "max_steps: expected an integer ≥ 1, got 2.5"),
+        ({"target_range": float("nan")}, "target_range: expected a positive finite number"),
+        ({"target_range": -5.0}, "target_range: expected a positive finite number, got -5.0"),
+        ({"reward_value": float("inf")}, "reward_value: expected a positive finite number"),
+    ],
+)
+def test_a_task_that_cannot_run_is_refused(argument, message):
+    with pytest.raises(ValueError, match=message):
+        Firefly1DModel(**argument)
+
+
 def test_bad_inputs():
     bad = SPACE.default().clone()
     bad[0] = 3.0

@@ -467,6 +467,10 @@ def test_fit_rejects_bad_trials_before_any_work(firefly1d_model, trained_q, smal
     bad["mask"][2, 1, 0] = True
     bad["mask"][2, 1, 5] = True
     fails(bad, "'mask'", "prefix")
+    bad = base.clone()  # a trial going on after its STOP: the task would have ended it
+    bad["mask"][1, 3, :] = True
+    bad["action"][1, 3, :] = STOP
+    fails(bad, "'action' stops at agent 1, trial 3, step 0", "cut the trial there")
     fails(base.exclude("target"), "target")
     bad = base.clone()
     bad["task_theta"][..., 0] = 2.0

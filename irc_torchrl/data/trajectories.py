@@ -31,7 +31,8 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
 
     Checks presence and shapes of every field, that ``mask`` marks a non-empty prefix of
     each trial, that recorded steps are finite, that actions lie in the task's action set,
-    and that ``task_theta`` lies in the θ space.
+    that no trial goes on after a chosen stop (the task ends it there), and that
+    ``task_theta`` lies in the θ space.
     """
     if not isinstance(trials, TensorDictBase):
         raise TypeError(
@@ -94,8 +95,28 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
             f"trials: field 'action' at {_where(bad)} is {trials['action'][bad][0].tolist()}, "
             f"outside the task's action set ({_describe(model.action_spec)})"
         )
+    _refuse_steps_after_a_stop(trials, model)
     model.theta_space.validate(trials["task_theta"][mask], "trials: field 'task_theta'")
     return trials
+
+
+def _refuse_steps_after_a_stop(trials: TensorDictBase, model: TaskModel) -> None:
+    """A chosen stop (a discrete action) ends the trial: steps after it cannot be the task's.
+
+    Continuous actions are left alone: a recording resampled to the task's step interpolates
+    its controls, and can cross the stop threshold on the last steps before the trial ends.
+    """
+    if not isinstance(model.action_spec, Categorical):
+        return
+    mask = trials["mask"]
+    step = torch.arange(mask.shape[-1], device=mask.device).expand(mask.shape).unsqueeze(-1)
+    stopped = model.stops(trials["action"], step).squeeze(-1)
+    on = stopped[..., :-1] & mask[..., 1:]
+    if on.any():
+        raise ValueError(
+            f"trials: field 'action' stops at {_where(on)} yet 'mask' marks the next step; the "
+            "task ends a trial at its stop, so cut the trial there"
+        )
 
 
 def _describe(spec: TensorSpec) -> str:

@@ -10,6 +10,7 @@ the walk.
 from __future__ import annotations
 
 import math
+from numbers import Integral
 
 import torch
 from torchrl.data import Categorical
@@ -67,6 +68,11 @@ class Firefly1DModel(TaskModel):
         reward_value: float = 10.0,
         theta_space: ThetaSpace | None = None,
     ) -> None:
+        if isinstance(max_steps, bool) or not isinstance(max_steps, Integral) or max_steps < 1:
+            raise ValueError(f"max_steps: expected an integer ≥ 1, got {max_steps!r}")
+        for name, value in {"target_range": target_range, "reward_value": reward_value}.items():
+            if not 0 < value < math.inf:
+                raise ValueError(f"{name}: expected a positive finite number, got {value!r}")
         self.theta_space = theta_space if theta_space is not None else firefly1d_theta_space()
         self.target_range = target_range
         self.max_steps = max_steps

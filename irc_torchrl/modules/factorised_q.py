@@ -26,7 +26,7 @@ class RandomBasis(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = torch.tanh(x @ self.weight.to(x.dtype) + self.bias.to(x.dtype))
-        return torch.cat([torch.ones_like(h[..., :1]), h], -1)
+        return torch.cat([h.new_ones(*h.shape[:-1], 1), h], -1)
 
 
 class FactorisedQ(nn.Module):
