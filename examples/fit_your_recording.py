@@ -16,8 +16,8 @@ A recording is one table, one row per time step (docs/trajectory_schema.md). Thi
 these seeds its intervals hold both gains; `irc recover` measures its coverage over many
 agents, still short of the nominal 95% for some parameters). ``--method map`` (the
 paper's estimator: the observations at their most probable value) is 2-3 times faster but
-biased: with these seeds its gains are off by about 1% and its intervals, narrower than that,
-miss the truth.
+biased: with these seeds it puts g_w 1.2% low, and that interval, narrower than the bias,
+misses the truth.
 
 With a real recording, skip step 1. The command line does steps 2-4 in one go
 (``fit_lapse=false lapse=0`` fits as this script does; by default it also fits how often the

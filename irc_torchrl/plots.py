@@ -205,7 +205,12 @@ def plot_estimates(summary: dict, path: str | Path, units: Mapping[str, str] | N
 def _recorded(arrays: Mapping[str, np.ndarray], trial: int) -> dict[str, np.ndarray]:
     """One trial's recorded steps of the belief arrays (see ``beliefs.npz``)."""
     keep = arrays["mask"][trial].astype(bool)
-    return {k: v[trial][keep] for k, v in arrays.items() if k != "mask"}
+    return {k: v[trial][keep] for k, v in arrays.items() if k not in ("mask", "trial")}
+
+
+def _trial_name(arrays: Mapping[str, np.ndarray], row: int) -> str:
+    """A trial's number in its recording (``trial``), else its row."""
+    return str(arrays["trial"][row]) if "trial" in arrays else str(row)
 
 
 def plot_belief_overhead(
@@ -249,11 +254,11 @@ def plot_belief_overhead(
         ax.plot(*target, "r*", ms=10, label="target")
         if goal_radius is not None:
             ax.add_patch(Circle(target, goal_radius, fill=False, color="r", ls=":", lw=0.8))
-        ax.plot(0, 0, "ko", ms=3)
+        ax.plot(*t["state"][0, :2], "ko", ms=3)  # where the trial starts
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel(f"x ({distance_unit})")
         ax.set_ylabel(f"y ({distance_unit})")
-        ax.set_title(f"trial {trial}", fontsize=9)
+        ax.set_title(f"trial {_trial_name(arrays, trial)}", fontsize=9)
     axes[0][0].legend(fontsize=6, loc="best")
     if title:
         fig.suptitle(title, fontsize=9)
@@ -272,8 +277,8 @@ def plot_belief_time(
     (and, with ``true_mean``, the belief the agent really held: the paper's Fig. 1F)."""
     shown = min(n_trials, arrays["state"].shape[0])
     fig, axes = plt.subplots(len(names), 1, figsize=(6, 1.6 * len(names) + 0.6), sharex=True)
-    for trial in range(shown):
-        t = _recorded(arrays, trial)
+    for row in range(shown):
+        t, trial = _recorded(arrays, row), _trial_name(arrays, row)
         std = np.sqrt(np.clip(np.diagonal(t["cov"], axis1=-2, axis2=-1), 0, None))
         for i, ax in enumerate(axes):
             mean = t["mean"][:, i]

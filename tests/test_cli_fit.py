@@ -469,3 +469,30 @@ def test_simulation_reports_each_time_step_without_changing_the_trials():
     quiet = simulate_agents(model, None, theta, 2, seed=3)
     assert calls == [(i, model.max_steps) for i in range(1, model.max_steps + 1)]
     assert torch.equal(seen["action"], quiet["action"])
+
+
+def test_a_fit_of_recordings_sharing_a_name_keeps_each_apart(simulated, tmp_path):
+    """Two files named alike (one simulated, one not) and a third whose name is the numbered
+    form of theirs: unique labels, a warning that the truth is known for only some, every
+    recording's own trial numbers in beliefs.npz, a particle check of the reported fit alone."""
+    (tmp_path / "lab").mkdir()
+    lines = (simulated / "agent0.csv").read_text().splitlines()
+    rows = [row.split(",", 1) for row in lines[1:]]  # trial numbers 100, 107, ...
+    renumbered = [f"{100 + 7 * int(trial)},{rest}" for trial, rest in rows]
+    (tmp_path / "lab" / "agent0.csv").write_text("\n".join([lines[0], *renumbered]) + "\n")
+    shutil.copy(simulated / "agent0.csv", tmp_path / "lab" / "agent0_1.csv")
+    files = [str(simulated / "agent0.csv"), str(tmp_path / "lab" / "agent0.csv")]
+    files.append(str(tmp_path / "lab" / "agent0_1.csv"))
+    out = tmp_path / "fit"
+    settings = ["--free", "g_v", "--method", "marginal", "max_iter=2", "particles=20"]
+    with pytest.warns(UserWarning, match="the true θ of 1 of 3 recordings is known"):
+        assert main(["fit", *files, "--out", str(out), "--quiet", *settings]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    labels = [agent["label"] for agent in summary["agents"]]
+    assert len(set(labels)) == 3 and labels[2] == "agent0_1", labels
+    assert "particle_check_marginal_s" in summary["timings"]
+    assert "particle_check_map_s" not in summary["timings"]  # map's fit is not reported
+    recorded = read_trials(simulated / "agent0.csv", Firefly2DModel())["trial"][:, 0]
+    with np.load(out / "beliefs.npz") as beliefs:
+        numbers = [beliefs[f"{label}/trial"].tolist() for label in labels]
+    assert numbers == [recorded.tolist(), (100 + 7 * recorded).tolist(), recorded.tolist()]

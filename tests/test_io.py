@@ -186,6 +186,14 @@ def test_a_memmap_folder_is_checked_as_held_trials(
     assert str(tmp_path / "held") in str(excinfo.value)
 
 
+def test_a_memmap_folder_of_several_agents_is_refused(tmp_path, model2d, trials2d):
+    # irc recover's trials/ is [agent, trial, step]: pooled, they would read as one agent
+    held = trials2d.select("state", "action", "target", "mask", "task_theta")
+    torch.stack([held, held]).memmap(tmp_path / "agents")
+    with pytest.raises(ValueError, match="holds the trials of 2 agents"):
+        read_trials(tmp_path / "agents", model2d)
+
+
 # --- resampling and units --------------------------------------------------------------------
 def _oversampled(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Each trial recorded twice as often: linear in between, actions held from the last step."""

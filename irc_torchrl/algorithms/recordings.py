@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -223,9 +224,16 @@ def _simulated_truth(path: Path, space: ThetaSpace) -> torch.Tensor | None:
 
 
 def _labels(paths: Sequence[Path]) -> list[str]:
-    """A short unique name per recording (its stem, numbered where stems repeat)."""
+    """A short unique name per recording (its stem, numbered where stems repeat, and marked
+    where a number makes another file's stem)."""
     stems = [p.stem for p in paths]
-    return [s if stems.count(s) == 1 else f"{s}_{i}" for i, s in enumerate(stems)]
+    labels: list[str] = []
+    for i, stem in enumerate(stems):
+        label = stem if stems.count(stem) == 1 else f"{stem}_{i}"
+        while label in labels or (label != stem and label in stems):
+            label += "_"
+        labels.append(label)
+    return labels
 
 
 def _pad_steps(trials: TensorDictBase, steps: int) -> TensorDictBase:
@@ -253,9 +261,10 @@ def fit_recordings(
 
     ``method="marginal"`` starts from the ``map`` fit (the paper's estimator) and integrates
     over the agent's unseen observations; ``"both"`` keeps both results. Recordings with the
-    same number of trials are fitted in one batched call (an agent's θ̂ does not depend on
-    the others). Writes ``summary.json``, ``beliefs.npz`` (the agent's belief at every
-    recorded step under θ̂) and figures; returns the summary.
+    same number of trials are fitted in one batched call (at convergence an agent's θ̂ does
+    not depend on the others; a fit stopped by ``max_iter`` may end elsewhere). Writes
+    ``summary.json``, ``beliefs.npz`` (the agent's belief at every recorded step under θ̂,
+    with the recording's trial numbers) and figures; returns the summary.
     """
     if method not in FIT_METHODS:
         raise ValueError(f"method: expected one of {FIT_METHODS}, got {method!r}")
@@ -291,7 +300,14 @@ def fit_recordings(
             timings["calibrate_s"] = time.perf_counter() - start
     timings = {"read_s": read_s, **timings}
     labels = _labels(paths)
-    theta_true = torch.stack(truths) if all(t is not None for t in truths) else None
+    known = sum(t is not None for t in truths)
+    if 0 < known < len(truths):
+        warnings.warn(
+            f"fit: the true θ of {known} of {len(truths)} recordings is known (irc simulate's); "
+            "θ̂ is compared with the truth only when every recording's is: fit those apart",
+            stacklevel=2,
+        )
+    theta_true = torch.stack(truths) if known == len(truths) else None
     by_method = {
         name: _scored(
             space, action_model, result, theta_true, paths, labels, recordings, checks[name]
@@ -392,7 +408,7 @@ def _fit_groups(
                 for j, i in enumerate(members):
                     beliefs[i] = recovered[j, :, : recordings[i].shape[1]]
             timings[f"fit_{name}_s"] += time.perf_counter() - start
-            if config.particles:
+            if config.particles and (method == "both" or name == methods[-1]):  # reported
                 start = time.perf_counter()
                 check = particle_check(
                     loss, held, result.theta_hat, result.nuisance, config.particles, seed
@@ -514,6 +530,7 @@ def _scored(
 def _belief_arrays(recording: TensorDict, belief: TensorDict) -> dict[str, np.ndarray]:
     """What the belief figures and ``beliefs.npz`` hold for one recording."""
     return {
+        "trial": recording["trial"][:, 0].numpy(),  # the recording's own trial numbers
         "time": recording["time"].numpy(),
         "mask": recording["mask"].numpy(),
         "state": recording["state"].numpy(),

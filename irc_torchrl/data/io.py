@@ -278,6 +278,11 @@ def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: s
         trials = validate_trials(trials, model)
     except (ValueError, TypeError) as err:
         raise ValueError(f"{path}: {err}") from None
+    if trials.shape[0] > 1:  # e.g. irc recover's trials/: pooled, they would read as one agent
+        raise ValueError(
+            f"{path}: holds the trials of {trials.shape[0]} agents ([agent, trial, step]); a "
+            "recording is one agent's: write each with write_trials(trials[i], ...)"
+        )
     return trials_to_columns(trials.reshape(-1, trials.shape[-1]), model, time_column, trial_column)
 
 
