@@ -561,6 +561,32 @@ def test_a_shared_world_is_run_by_the_candidate_theta_not_the_recorded_one(metho
     )
 
 
+@pytest.mark.parametrize("world", ["known", "shared"])
+@pytest.mark.parametrize("method", ["marginal", "map"])
+def test_nan_after_a_trials_end_changes_neither_the_loss_nor_its_gradient(method, world):
+    """Steps after a trial's end may hold anything (``validate_trials`` reads only recorded
+    steps); the filters run over them, so a NaN there must be kept from the value and from the
+    gradient (0 × NaN), the recovered beliefs of recorded steps too."""
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.from_dict({"obs_sigma_v": 0.6, "sigma_v": 0.3}).double().unsqueeze(0)
+    action_model, trials = _trials(1, 3, theta, 0.15, seed=3)
+    trials["mask"][0, :2, 6:] = False
+    padded = trials.clone()
+    padded["state"][~padded["mask"]] = float("nan")
+    padded["action"][~padded["mask"]] = float("nan")
+    results = []
+    for held in (trials, padded):
+        loss = InverseRationalLoss(MODEL, action_model, world=world, method=method)
+        out = loss(held)
+        out["loss_nll"].backward()
+        grads = (loss.theta_free.grad, loss.nuisance.grad)
+        belief = loss.recovered_beliefs(loss.theta(), loss.nuisance, held)[held["mask"]]
+        results.append((out["loss_nll"].detach(), *grads, belief["belief", "mean"].detach()))
+    assert all(torch.isfinite(x).all() for x in results[1])
+    torch.testing.assert_close(results[1], results[0], rtol=1e-12, atol=1e-12)
+
+
 def test_the_particle_check_tells_the_marginal_approximation_from_the_hard_e_step():
     """On the smooth stand-in the outer filter loses under 0.02 nats per trial against the
     particle filter (measured 0.003); the hard E-step loses 16 times more (asserted: 5)."""

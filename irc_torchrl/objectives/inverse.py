@@ -235,10 +235,19 @@ class InverseRationalLoss(LossModule):
     def _fields(
         self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
     ) -> tuple[torch.Tensor, ...]:
-        """The recorded fields in θ's dtype, and θ and the nuisance per trial."""
+        """The recorded fields in θ's dtype, and θ and the nuisance per trial.
+
+        Steps after a trial's end may hold anything, NaN too: the filters run over them (their
+        terms are dropped), and a NaN there would still poison the gradient (0 × NaN), so the
+        state and action are zeroed there before anything reads them.
+        """
         keys = self.tensor_keys
         dtype = theta.dtype
-        state = trials[keys.state].to(dtype)
+        mask = trials[keys.mask]
+        state = trials[keys.state].to(dtype).masked_fill(~mask.unsqueeze(-1), 0)
+        action = trials[keys.action]
+        if action.is_floating_point():
+            action = action.masked_fill(~mask.view(*mask.shape, *[1] * (action.ndim - 3)), 0)
         target = trials[keys.target][:, :, 0].to(dtype)
         theta_b, nuisance_b = (
             x if x.dim() == 3 else x.unsqueeze(1).expand(*state.shape[:2], -1)
@@ -248,15 +257,7 @@ class InverseRationalLoss(LossModule):
         task_theta = (
             theta_b if self.world == "shared" else trials[keys.task_theta][:, :, 0].to(dtype)
         )
-        return (
-            theta_b,
-            nuisance_b,
-            state,
-            trials[keys.action],
-            target,
-            trials[keys.mask],
-            task_theta,
-        )
+        return theta_b, nuisance_b, state, action, target, mask, task_theta
 
     def _map_log_likelihood(
         self, theta_b, nuisance_b, state, action, target, mask, task_theta, generator
@@ -342,11 +343,6 @@ class InverseRationalLoss(LossModule):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per trial ``Σ log N(s_{t+1}; f(s_t, a_t, θ), Q(θ))`` over consecutive valid steps,
         and the same for next states drawn from that Gaussian with ``generator`` (else 0)."""
-        # steps after a trial's end may hold anything, NaN too: a masked NaN still poisons
-        # the gradient (0 × NaN), so they are zeroed before they are read
-        state = state.masked_fill(~mask.unsqueeze(-1), 0)
-        if action.is_floating_point():
-            action = action.masked_fill(~mask.view(*mask.shape, *[1] * (action.ndim - 3)), 0)
         prev, nxt = state[:, :, :-1], state[:, :, 1:]
         theta_t = theta_b.unsqueeze(2).expand(*prev.shape[:3], -1)
         mean = self.model.transition(prev, action[:, :, :-1], theta_t)
