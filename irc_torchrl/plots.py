@@ -1,7 +1,7 @@
 """The paper's figures and the run reports, drawn with matplotlib and written atomically as PNG.
 
 :func:`report_run` turns a run folder (``irc fit``, ``recover``, ``demo`` or ``train``) into
-figures from its ``summary.json`` (and ``beliefs.npz`` or ``logs/`` where present).
+figures from its ``summary.json`` (and ``beliefs.npz``, ``trials/`` or ``logs/`` where present).
 """
 
 from __future__ import annotations
@@ -22,8 +22,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from matplotlib.patches import Circle, Ellipse  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 
 from irc_torchrl.data.files import atomic_path  # noqa: E402
+from irc_torchrl.data.io import load_memmap  # noqa: E402
 from irc_torchrl.objectives.fisher import Z95  # noqa: E402
 
 __all__ = [
@@ -370,8 +372,9 @@ def report_run(folder: str | Path) -> list[Path]:
     Agents (``irc fit``, ``recover``, ``demo``): θ̂ against θ* with 95% intervals where the
     truth is known, else θ̂ with intervals per recording; per method too where the summary
     has ``methods`` (``--method both``, ``irc recover``). ``beliefs.npz`` (``irc fit``): the
-    recovered beliefs overhead and over time, per recording. ``history`` (``irc train``):
-    training curves, with the losses logged under ``logs/``.
+    recovered beliefs overhead and over time, per recording; ``trials/`` (``irc recover``, ``irc
+    demo --task firefly2d``): agent 0's recovered beliefs against its own, per method.
+    ``history`` (``irc train``): training curves, with the losses logged under ``logs/``.
     """
     folder = Path(folder)
     path = folder / "summary.json"
@@ -390,10 +393,11 @@ def report_run(folder: str | Path) -> list[Path]:
                 beliefs = {key: archive[key] for key in archive.files}
         except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
             raise ValueError(f"report: {archive_path} is damaged ({error})") from None
+    trials = _recovered_trials(summary, folder / "trials")
     # every figure is drawn aside first, so a field found lacking half-way leaves none behind
     with tempfile.TemporaryDirectory(dir=folder, prefix=".report.") as scratch:
         try:
-            drawn = _report(summary, beliefs, folder, path, Path(scratch))
+            drawn = _report(summary, beliefs, trials, folder, path, Path(scratch))
         except (KeyError, TypeError, AttributeError, IndexError) as error:
             raise ValueError(
                 f"report: {path} lacks or mangles field {error}; {_EXPECTED}"
@@ -407,9 +411,31 @@ def report_run(folder: str | Path) -> list[Path]:
 _EXPECTED = "expected the summary.json of irc fit, recover, demo or train"
 
 
+def _recovered_trials(summary: dict, path: Path) -> TensorDict | None:
+    """``irc recover``'s ``trials/`` (simulated trials, the agents' own beliefs and each
+    method's recovered ones), read whole before anything is drawn; None where there is none."""
+    methods = summary.get("methods")
+    if not (isinstance(methods, dict) and path.is_dir()):
+        return None
+    try:
+        trials = load_memmap(path)
+    except ValueError as error:
+        raise ValueError(f"report: {error}") from None
+    needed = ["state", "target", "mask", ("belief", "mean")]
+    needed += [(method, "belief", part) for method in methods for part in ("mean", "cov")]
+    missing = [key for key in needed if key not in trials.keys(True)]
+    if missing or trials.batch_dims != 3:
+        raise ValueError(
+            f"report: {path} lacks {missing or 'the [agent, trial, step] layout'}; expected "
+            "irc recover's trials/ for the methods of its summary.json"
+        )
+    return trials
+
+
 def _report(
     summary: dict,
     beliefs: Mapping[str, np.ndarray] | None,
+    trials: TensorDict | None,
     folder: Path,
     path: Path,
     out: Path,
@@ -430,6 +456,10 @@ def _report(
             written.append(_agent_figures(part, out / f"_{method}.png", units))
     if beliefs is not None and "state_names" in summary:
         written += _belief_figures(summary, beliefs, out)
+    if trials is not None:
+        from irc_torchrl.algorithms.recover2d import belief_figures
+
+        written += belief_figures(trials, list(summary["methods"]), out)
     if written and summary.get("task") == "firefly2d":
         written += _q_figure(summary, folder, out)
     if not written:

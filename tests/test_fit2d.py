@@ -5,8 +5,10 @@ Fixed seeds throughout; tolerances are stated where they are asserted.
 
 import itertools
 
+import numpy as np
 import pytest
 import torch
+from matplotlib.image import imread
 from scipy.stats import chi2
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
@@ -17,7 +19,9 @@ from irc_torchrl.algorithms.recover2d import (
     format_recovery,
     recover_firefly2d,
     simulate_recovery_agents,
+    write_recovery,
 )
+from irc_torchrl.cli import main
 from irc_torchrl.config import RecordingFitConfig
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
@@ -125,6 +129,28 @@ def test_summary_scores_both_groups_of_agents(recovery):
         assert set(entry["by_group"]) == {"prior", "mistaken"}
         for stats in entry["parameters"].values():
             assert 0 <= stats["coverage"] <= 1 and stats["median_ci_width"] >= 0
+
+
+def test_report_redraws_a_recovery_folders_belief_figures(recovery, tmp_path, capsys):
+    # irc recover keeps the trials with the agents' own and the recovered beliefs (trials/);
+    # irc report draws Fig. 1E/1F from them pixel for pixel as the run did, and refuses a
+    # truncated trials/ before drawing anything
+    trials, summary, _ = recovery
+    write_recovery(trials, summary, tmp_path)
+    names = [f"beliefs_{kind}_{m}.png" for kind in ("overhead", "time") for m in summary["methods"]]
+    drawn = {name: imread(tmp_path / name) for name in names}
+    for name in names:
+        (tmp_path / name).unlink()
+    assert main(["report", str(tmp_path)]) == 0
+    for name in names:
+        assert np.array_equal(imread(tmp_path / name), drawn[name]), name
+    for png in tmp_path.glob("*.png"):
+        png.unlink()
+    leaf = tmp_path / "trials" / "marginal" / "belief" / "mean.memmap"
+    leaf.write_bytes(leaf.read_bytes()[:100])
+    assert main(["report", str(tmp_path)]) == 2
+    assert "mean.memmap: 100 bytes; expected" in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.png"))
 
 
 def test_the_particle_check_finds_the_hard_e_step_far_from_the_likelihood(recovery):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -65,10 +65,12 @@ __all__ = [
     "Recovery2DConfig",
     "DEMO_OVERRIDES",
     "belief_agreement",
+    "belief_figures",
     "format_recovery",
     "predicted_widths",
     "recover_firefly2d",
     "run_recovery",
+    "write_recovery",
 ]
 
 #: the held-trial fields an experimenter records (no θ, no belief)
@@ -488,7 +490,6 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
     """Run :func:`recover_firefly2d` into ``out``: ``config.yaml``, ``summary.json``,
     ``trials/`` (the simulated data with truth and recovered beliefs) and figures."""
     out = Path(out)
-    model = Firefly2DModel()
     with torch_settings(config.threads, True):
         write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
         bars: dict[str, tqdm] = {}
@@ -500,22 +501,38 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
             bars[method].update(1)
 
         trials, summary, _ = recover_firefly2d(config, progress)
-        trials = trials.cpu()
         for bar in bars.values():
             bar.close()
+    write_recovery(trials.cpu(), summary, out)
+    return summary
+
+
+def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
+    """A recovery's ``summary.json``, ``trials/`` and figures, into ``out``."""
+    out = Path(out)
     write_json(out / "summary.json", {"command": "recover", **summary})
     with atomic_dir(out / "trials") as folder:
         trials.memmap(folder)
     for method, entry in summary["methods"].items():
         plot_recovery(entry, out / f"recovery_{method}.png", title=method)
+    belief_figures(trials, summary["methods"], out)
+
+
+def belief_figures(trials: TensorDict, methods: Sequence[str], out: Path) -> list[Path]:
+    """Agent 0's beliefs recovered by each method against its own, overhead and over time (the
+    paper's Fig. 1E and 1F), into ``out``; ``irc report`` redraws them from ``trials/``."""
+    model = Firefly2DModel()
+    written = []
+    for method in methods:
         arrays = _belief_arrays(trials, method, agent=0, dt=model.dt)
         title = f"agent 0: beliefs recovered by {method} vs the agent's own"
-        plot_belief_overhead(arrays, out / f"beliefs_overhead_{method}.png", title=title)
-        plot_belief_time(
-            arrays, model.state_names, model.state_units, out / f"beliefs_time_{method}.png",
-            title=title,
-        )  # fmt: skip
-    return summary
+        overhead = out / f"beliefs_overhead_{method}.png"
+        timeline = out / f"beliefs_time_{method}.png"
+        written += [
+            plot_belief_overhead(arrays, overhead, title=title),
+            plot_belief_time(arrays, model.state_names, model.state_units, timeline, title=title),
+        ]
+    return written
 
 
 def _belief_arrays(trials: TensorDict, method: str, agent: int, dt: float) -> dict[str, np.ndarray]:

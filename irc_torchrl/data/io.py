@@ -37,7 +37,7 @@ from irc_torchrl.data.validate import (
 )
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["nwb_module", "read_trials", "write_trials", "trials_to_columns"]
+__all__ = ["load_memmap", "nwb_module", "read_trials", "write_trials", "trials_to_columns"]
 
 #: the median time step may differ from the model's by this fraction before resampling
 RESAMPLE_TOLERANCE = 0.01
@@ -262,15 +262,22 @@ def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
         writer.writerows(zip(*cells, strict=True))
 
 
-def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+def load_memmap(path: str | Path) -> TensorDict:
+    """A TensorDict memmap folder (``write_trials``'s, ``irc recover``'s ``trials/``) read into
+    memory, its files checked against ``meta.json`` first; a damaged folder is a ValueError."""
+    path = Path(path)
     _check_memmap_sizes(path)
     try:
-        trials = TensorDict.load_memmap(path)
+        return TensorDict.load_memmap(path).to_tensordict()
     except (FileNotFoundError, KeyError, ValueError, RuntimeError) as err:
         raise ValueError(
             f"{path}: not a TensorDict memmap folder ({err}); expected one written by "
             "write_trials or TensorDict.memmap"
         ) from None
+
+
+def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
+    trials = load_memmap(path)
     missing = [k for k in TRIAL_KEYS if k not in trials.keys()]
     if missing:
         raise KeyError(f"{path}: missing field(s) {missing}; held trials need {list(TRIAL_KEYS)}")
@@ -294,6 +301,9 @@ def _check_memmap_sizes(path: Path) -> None:
     except (OSError, ValueError):
         return  # TensorDict.load_memmap says what is wrong with it
     for key, leaf in meta.items() if isinstance(meta, dict) else ():
+        if leaf == {"type": "TensorDict"} and (path / key).is_dir():  # a nested TensorDict
+            _check_memmap_sizes(path / key)
+            continue
         file = path / f"{key}.memmap"
         if not (isinstance(leaf, dict) and file.is_file()):
             continue
