@@ -587,6 +587,60 @@ def test_nan_after_a_trials_end_changes_neither_the_loss_nor_its_gradient(method
     torch.testing.assert_close(results[1], results[0], rtol=1e-12, atol=1e-12)
 
 
+def _drop_a_w(trials):
+    return trials.set("action", trials["action"][..., :1])
+
+
+def _nan_recorded(trials):
+    trials["action"][0, 0, 2, 0] = float("nan")
+    return trials
+
+
+def _outside(trials):
+    trials["action"][0, 0, 2, 0] = 7.0
+    return trials
+
+
+@pytest.mark.parametrize(
+    "damage, error, message",
+    [
+        (_drop_a_w, ValueError, r"field 'action' expected shape \[n_agents, n_trials, T, 2\]"),
+        (_nan_recorded, ValueError, "field 'action' has NaN or inf at agent 0, trial 0, step 2"),
+        (_outside, ValueError, "field 'action' at agent 0, trial 0, step 2 is \\[7.0"),
+        (lambda t: t.set("mask", t["mask"].float()), TypeError, "'mask' expected dtype bool"),
+        (lambda t: t.exclude("target"), KeyError, r"missing field\(s\) \['target'\]"),
+    ],
+)
+def test_the_loss_refuses_malformed_trials_before_any_work(damage, error, message, monkeypatch):
+    """``loss(trials)`` in a user's own loop checks the trials as ``fit_theta`` does: a
+    malformed field is a one-line error, not a silently broadcast or wrong loss."""
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.default().double().unsqueeze(0)
+    action_model, trials = _trials(1, 2, theta, 0.15, seed=3)
+    loss = InverseRationalLoss(MODEL, action_model)
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the likelihood ran on malformed trials")
+
+    monkeypatch.setattr(loss, "log_likelihood", no_work)
+    with pytest.raises(error, match=message):
+        loss(damage(trials.clone()))
+
+
+def test_the_loss_reads_trials_under_the_keys_it_is_set_to():
+    from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+    theta = SPACE.default().double().unsqueeze(0)
+    action_model, trials = _trials(1, 2, theta, 0.15, seed=3)
+    loss = InverseRationalLoss(MODEL, action_model)
+    renamed = InverseRationalLoss(MODEL, action_model)
+    renamed.set_keys(state=("world", "state"), action="control")
+    moved = trials.clone().rename_key_("action", "control")
+    moved["world", "state"] = moved.pop("state")
+    torch.testing.assert_close(renamed(moved)["loss_nll"], loss(trials)["loss_nll"])
+
+
 def test_the_particle_check_tells_the_marginal_approximation_from_the_hard_e_step():
     """On the smooth stand-in the outer filter loses under 0.02 nats per trial against the
     particle filter (measured 0.003); the hard E-step loses 16 times more (asserted: 5)."""

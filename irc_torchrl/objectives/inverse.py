@@ -16,6 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
+from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.objectives.marginal import (
@@ -368,11 +369,22 @@ class InverseRationalLoss(LossModule):
         return log_prob(nxt), log_prob(drawn)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        """``loss_nll`` of held trials ``[n_agents, n_trials, T]`` and each agent's
+        ``log_likelihood``; malformed trials are refused first (:func:`validate_trials`)."""
         if tensordict.ndim != 3 or tensordict.shape[0] != self.theta_free.shape[0]:
             raise ValueError(
                 f"trials: expected batch dims [{self.theta_free.shape[0]} agents, n_trials, T], "
                 f"got {list(tensordict.batch_size)}"
             )
+        present = tensordict.keys(include_nested=True)
+        named = {name: getattr(self.tensor_keys, name) for name in TRIAL_KEYS}
+        validate_trials(  # under the default names, which its messages give
+            TensorDict(
+                {name: tensordict.get(key) for name, key in named.items() if key in present},
+                batch_size=tensordict.batch_size,
+            ),
+            self.model,
+        )
         theta = self.theta(self.theta_free)
         log_likelihood = self.log_likelihood(theta, self.nuisance, tensordict)
         return TensorDict(
