@@ -241,3 +241,39 @@ def test_draws_from_a_wide_predictive_at_a_bound_have_scores_of_mean_zero():
     scores = torch.autograd.grad(logp.sum(), (mean, var, nuisance))
     for score in (scores[0].flatten(), scores[1].flatten(), scores[2][:, -1]):
         assert score.mean().abs() < 4 * score.std() / math.sqrt(len(score))
+
+
+@pytest.mark.parametrize("kind", ["censored", "boltzmann"])
+def test_an_action_model_scores_by_a_frozen_copy_and_leaves_the_callers_network_trainable(kind):
+    """Building an action model must not freeze the network a user is still training (a
+    DDPG step would then silently do nothing), nor follow its later updates."""
+    network = Affine(torch.tensor([[1.5, -0.5], [0.3, 2.0]], dtype=torch.float64))
+    if kind == "censored":
+        model = CensoredGaussianActionModel(network, -torch.ones(2), torch.ones(2))
+        held = model.actor
+    else:
+        model = BoltzmannActionModel(network)
+        held = model.q_network
+    features = torch.tensor([[0.4, 0.9]], dtype=torch.float64)
+    before = held(features)
+    assert network.weight.requires_grad and not held.weight.requires_grad
+    network(features).sum().backward()
+    with torch.no_grad():
+        network.weight -= network.weight.grad  # the caller's training step
+    assert not torch.equal(network(features), before)
+    assert torch.equal(held(features), before)
+
+
+def test_feature_policy_names_what_it_needs_when_given_an_exploration_policy():
+    from tensordict.nn import TensorDictSequential
+    from torchrl.modules import AdditiveGaussianModule
+
+    from irc_torchrl.envs.firefly2d import Firefly2DModel
+    from irc_torchrl.modules.actor_critic import FeaturePolicy, make_actor
+
+    model = Firefly2DModel()
+    actor = make_actor(model, hidden=(8,))
+    explore = TensorDictSequential(actor, AdditiveGaussianModule(model.action_spec))
+    with pytest.raises(TypeError, match="pass the actor itself, not an exploration policy"):
+        FeaturePolicy(explore)
+    assert FeaturePolicy(actor).mlp is actor.module[1].module  # the actor's own network

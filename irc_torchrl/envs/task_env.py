@@ -19,8 +19,11 @@ class TaskEnv(EnvBase):
 
     Every batch element carries the agent's θ (``theta``) and the world's θ (``task_theta``).
     At each reset, ``theta`` is drawn from the prior unless it was given (to the constructor,
-    held for every trial, or to :meth:`reset` for one reset); ``task_theta`` equals ``theta``
-    unless given. The agent's belief is added by :class:`~irc_torchrl.envs.belief.EKFBelief`.
+    held for every trial, or as a keyword, ``env.reset(theta=...)``, for one reset);
+    ``task_theta`` equals ``theta`` unless given. A ``theta`` entry of the TensorDict passed to
+    :meth:`reset` is not read: there it is the ending trial's, carried over by ``step_mdp``,
+    and reading it would keep θ from being redrawn. The agent's belief is added by
+    :class:`~irc_torchrl.envs.belief.EKFBelief`.
 
     Args:
         model: the task; ``None`` builds the subclass's ``model_class`` with its defaults.

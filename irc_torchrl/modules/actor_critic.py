@@ -104,7 +104,14 @@ class FeaturePolicy(nn.Module):
 
     def __init__(self, actor: TensorDictSequential, dtype: torch.dtype | None = None) -> None:
         super().__init__()
-        _, net, squash = actor.module
+        parts = list(getattr(actor, "module", ()))
+        if len(parts) != 3 or not isinstance(parts[2], TanhModule):
+            raise TypeError(
+                "actor: expected make_actor's TensorDictSequential (features, MLP, TanhModule), "
+                f"got {type(actor).__name__} of {len(parts)} module(s); pass the actor itself, "
+                "not an exploration policy around it"
+            )
+        _, net, squash = parts
         self.mlp = net.module
         self.dtype = dtype
         bounds = squash.spec[squash.out_keys[0]].space

@@ -8,6 +8,7 @@ sampled score, whose outer product estimates the Fisher information (Fisher scor
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
 
@@ -85,14 +86,17 @@ def gaussian_log_prob_of_draw(
 
 
 class BoltzmannActionModel(nn.Module):
-    """Discrete actions drawn from ``softmax(Q(b, ·, θ) / τ)``; the nuisance is ``log τ``."""
+    """Discrete actions drawn from ``softmax(Q(b, ·, θ) / τ)``; the nuisance is ``log τ``.
+
+    Scores by a frozen copy of ``q_network``, taken when it is built."""
 
     nuisance_names = ("log_temperature",)
     nuisance_bounded = (False,)
 
     def __init__(self, q_network: nn.Module, temperature: float = 0.5) -> None:
         super().__init__()
-        self.q_network = q_network.requires_grad_(False)
+        # a frozen copy: the caller's network stays trainable (and leaves this model as it is)
+        self.q_network = copy.deepcopy(q_network).requires_grad_(False)
         self.nuisance_init = torch.tensor([math.log(temperature)], device="cpu")
 
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
@@ -163,7 +167,8 @@ class CensoredGaussianActionModel(nn.Module):
     logit scaled to ``(0, LAPSE_MAX)``, bounded in the fit like θ's.
 
     Args:
-        actor: maps belief features ``[*B, df]`` to the noise-free action ``[*B, da]``.
+        actor: maps belief features ``[*B, df]`` to the noise-free action ``[*B, da]``; the
+            model scores actions by a frozen copy of it, taken here.
         low, high: the action bounds, ``[da]``.
         motor_noise: the initial motor-noise standard deviation.
         atol: how close to a bound a recorded action counts as clipped.
@@ -192,7 +197,8 @@ class CensoredGaussianActionModel(nn.Module):
             )
         self.lapse = lapse
         self.fit_lapse = fit_lapse
-        self.actor = actor.requires_grad_(False)
+        # a frozen copy: the caller's actor stays trainable (and leaves this model as it is)
+        self.actor = copy.deepcopy(actor).requires_grad_(False)
         for name, bound in (("low", low), ("high", high)):
             where = bound.device if isinstance(bound, torch.Tensor) else "cpu"
             self.register_buffer(name, torch.as_tensor(bound, dtype=torch.float64, device=where))

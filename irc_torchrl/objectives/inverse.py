@@ -43,7 +43,7 @@ class InverseRationalLoss(LossModule):
 
     Args:
         model: the task.
-        action_model: scores actions given belief features (its network is frozen).
+        action_model: scores actions given belief features (by a frozen copy of its network).
         theta_space: which parameters are free; defaults to the model's.
         n_agents: how many agents are fitted at once (independent rows).
         world: ``"known"`` if the world's θ is the recorded ``task_theta`` (actions alone
