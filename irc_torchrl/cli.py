@@ -351,11 +351,10 @@ def _check_arguments(args: argparse.Namespace) -> None:
         written_by = json.loads((out / "summary.json").read_text()).get("command")
     except (OSError, ValueError, AttributeError):
         return
-    # `irc demo --task firefly2d` is a short `irc recover`: either may redo the other's folder
-    family = {"demo": "recover"}
-    if written_by is not None and family.get(written_by, written_by) != family.get(
-        args.command, args.command
-    ):
+    # `irc demo --task firefly2d` is a short `irc recover` and writes its summary
+    is_recovery = args.command == "demo" and getattr(args, "task", None) == "firefly2d"
+    writes = "recover" if is_recovery else args.command
+    if written_by is not None and written_by != writes:
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"

@@ -412,8 +412,9 @@ _EXPECTED = "expected the summary.json of irc fit, recover, demo or train"
 
 
 def _recovered_trials(summary: dict, path: Path) -> TensorDict | None:
-    """``irc recover``'s ``trials/`` (simulated trials, the agents' own beliefs and each
-    method's recovered ones), read whole before anything is drawn; None where there is none."""
+    """Agent 0's ``[1, trial, step]`` of ``irc recover``'s ``trials/`` (simulated trials, the
+    agents' own beliefs and each method's recovered ones), read before anything is drawn;
+    None where there is none."""
     methods = summary.get("methods")
     if not (isinstance(methods, dict) and path.is_dir()):
         return None
@@ -429,7 +430,7 @@ def _recovered_trials(summary: dict, path: Path) -> TensorDict | None:
             f"report: {path} lacks {missing or 'the [agent, trial, step] layout'}; expected "
             "irc recover's trials/ for the methods of its summary.json"
         )
-    return trials
+    return trials[:1].to_tensordict()  # the figures show agent 0
 
 
 def _report(

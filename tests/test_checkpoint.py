@@ -79,8 +79,9 @@ def test_a_checkpoint_trained_on_a_gpu_loads_and_resumes_on_the_cpu(
             config={**ckpt["config"], "device": "cuda:0"},
             state=state,
         )
-    with pytest.raises(RuntimeError):  # the tags are real: torch alone would want the GPU
-        torch.load(path, weights_only=True)
+    if not torch.cuda.is_available():  # the tags are real: torch alone would want the GPU
+        with pytest.raises(RuntimeError):
+            torch.load(path, weights_only=True)
     actor, _, _ = load_ensemble_policy(path)
     critic, _, _ = load_ensemble_critic(path)
     for name, value in result.actor.state_dict().items():

@@ -24,6 +24,8 @@ from irc_torchrl.data.io import read_trials
 from irc_torchrl.envs.firefly2d import Firefly2DModel, firefly2d_theta_space
 
 SPACE = firefly2d_theta_space()
+#: a GPU that is asked for is refused only where there is none
+WITHOUT_GPU = pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
 #: the simulated agent: the prior's defaults except the three parameters the test fits
 TRUTH = {**SPACE.to_dict(SPACE.default()), "g_v": 1.4, "g_w": 0.8, "obs_sigma_v": 0.6}
 FREE = ["g_v", "g_w", "obs_sigma_v"]
@@ -244,8 +246,12 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "fit_lapse=maybe"], "fit_lapse='maybe' is not a valid bool"),
         (["simulate", "--device", "nonsense"], "device:"),
         (["fit", "FILE", "--device", "meta"], "device: 'meta' tensors hold no values"),
-        (["simulate", "--device", "cuda"], "device: 'cuda' requested but"),
-        (["recover", "--device", "cuda:0"], "device: 'cuda:0' requested but"),
+        pytest.param(
+            ["simulate", "--device", "cuda"], "device: 'cuda' requested but", marks=WITHOUT_GPU
+        ),
+        pytest.param(
+            ["recover", "--device", "cuda:0"], "device: 'cuda:0' requested but", marks=WITHOUT_GPU
+        ),
         (["demo", "--task", "firefly2d", "device=meta"], "device: 'meta' tensors hold no values"),
         (["fit", "FILE", "max_iters=3"], "unknown key 'max_iters'; valid keys: n_screen"),
         (["fit", "FILE", "--free", "g_v,g_x"], "unknown θ parameter 'g_x'"),
@@ -273,7 +279,9 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["train", "evaluation.seed=-1"], "evaluation.seed must be an integer in [0, 2**63)"),
         (["train", "flush_denormal=ture"], "flush_denormal='ture' is not a valid bool"),
         (["train", "n_envs=[1"], "override 'n_envs=[1' is not valid YAML"),
-        (["train", "--device", "cuda:0"], "device: 'cuda:0' requested but"),
+        pytest.param(
+            ["train", "--device", "cuda:0"], "device: 'cuda:0' requested but", marks=WITHOUT_GPU
+        ),
         (["train", "--device", "meta"], "config: device must be 'cpu' or a 'cuda' device"),
         (["train", "device=mps"], "config: device must be 'cpu' or a 'cuda' device"),
         (["train", "device=nowhere"], "config: device must name a torch device"),
@@ -304,6 +312,12 @@ def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_
         (run / "summary.json").write_text(f'{{"command": "{command}"}}')
         assert main(["simulate", "--quiet", "--out", str(run)]) == 2
         assert f"holds the summary.json of irc {command}" in capsys.readouterr().err
+    # the 1D demo's summary is not a recovery's (the 2D demo's is: it may redo that folder)
+    recovery = str(tmp_path / "recover")
+    assert main(["demo", "--quiet", "--out", recovery]) == 2
+    assert "holds the summary.json of irc recover, which irc demo" in capsys.readouterr().err
+    assert main(["demo", "--task", "firefly2d", "--quiet", "--out", str(tmp_path / "demo")]) == 2
+    assert "holds the summary.json of irc demo, which irc demo" in capsys.readouterr().err
 
 
 def test_a_rerun_of_simulate_drops_the_old_summary_before_writing(tmp_path, monkeypatch):

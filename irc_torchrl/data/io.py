@@ -263,12 +263,13 @@ def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
 
 
 def load_memmap(path: str | Path) -> TensorDict:
-    """A TensorDict memmap folder (``write_trials``'s, ``irc recover``'s ``trials/``) read into
-    memory, its files checked against ``meta.json`` first; a damaged folder is a ValueError."""
+    """A TensorDict memmap folder (``write_trials``'s, ``irc recover``'s ``trials/``), opened
+    once its files are checked against ``meta.json``; a damaged folder is a ValueError. Only
+    what is indexed is read."""
     path = Path(path)
     _check_memmap_sizes(path)
     try:
-        return TensorDict.load_memmap(path).to_tensordict()
+        return TensorDict.load_memmap(path)
     except (FileNotFoundError, KeyError, ValueError, RuntimeError) as err:
         raise ValueError(
             f"{path}: not a TensorDict memmap folder ({err}); expected one written by "
@@ -301,7 +302,7 @@ def _check_memmap_sizes(path: Path) -> None:
     except (OSError, ValueError):
         return  # TensorDict.load_memmap says what is wrong with it
     for key, leaf in meta.items() if isinstance(meta, dict) else ():
-        if leaf == {"type": "TensorDict"} and (path / key).is_dir():  # a nested TensorDict
+        if isinstance(leaf, dict) and "type" in leaf and (path / key).is_dir():  # nested
             _check_memmap_sizes(path / key)
             continue
         file = path / f"{key}.memmap"

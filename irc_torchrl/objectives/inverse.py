@@ -49,7 +49,8 @@ class InverseRationalLoss(LossModule):
         world: ``"known"`` if the world's θ is the recorded ``task_theta`` (actions alone
             inform θ), ``"shared"`` if the agent's model is the world's: the world then runs
             under the candidate θ (its transitions count too, its observations' noise is the
-            candidate's, the recorded ``task_theta`` is not read).
+            candidate's, the recorded ``task_theta`` is not read, though :meth:`forward`
+            checks it as it checks every recorded field).
         method: ``"map"``, the paper's hard E-step (the agent's observations at their most
             probable value), or ``"marginal"``, the agent's unseen observations integrated out
             by an outer filter over its belief (:mod:`~irc_torchrl.objectives.marginal`).
