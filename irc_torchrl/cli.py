@@ -213,6 +213,9 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "particles (e.g. 1000: check each fit against a particle filter's likelihood), "
         "components (e.g. 16: marginal's belief as a Gaussian sum over trials' last 4 steps), "
         "actor_dtype (float32, or float64: the frozen actor's precision, ~1.3× slower), "
+        "calibrate (e.g. 2: datasets simulated at each θ̂ and refitted to calibrate the "
+        "intervals; each costs about the fit again), calibration_tail (shrunk toward all "
+        "parameters' tails, or own: each parameter's 95% quantile alone), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
     )
@@ -258,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     demo.add_argument(
-        "--seed", type=int, default=None, help="seed of every random draw (default 0)"
+        "--seed", type=int, default=None, help="seed of every random draw (overrides the config's)"
     )
     demo.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     demo.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -160,9 +160,7 @@ class ThetaSpace:
             )
         if not theta.is_floating_point():
             raise TypeError(f"{field}: expected a floating-point tensor, got {theta.dtype}")
-        low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
-        slack = self.tolerance * (high - low)
-        bad = ~torch.isfinite(theta) | (theta < low - slack) | (theta > high + slack)
+        bad = self.outside(theta)
         if bad.any():
             i = int(bad.reshape(-1, self.dim).any(0).nonzero()[0])
             p = self.parameters[i]
@@ -171,6 +169,13 @@ class ThetaSpace:
                 f"{field}: {p.name}={value:.6g} is outside its space [{p.low}, {p.high}]"
             )
         return theta
+
+    def outside(self, theta: torch.Tensor) -> torch.Tensor:
+        """Which components of ``theta [..., dim]`` are not finite or lie outside their bounds
+        (beyond the tolerance), ``[..., dim]``."""
+        low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
+        slack = self.tolerance * (high - low)
+        return ~torch.isfinite(theta) | (theta < low - slack) | (theta > high + slack)
 
     # --- coordinates -----------------------------------------------------------------------
     def to_unconstrained(self, theta: torch.Tensor) -> torch.Tensor:

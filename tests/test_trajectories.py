@@ -62,7 +62,7 @@ def _theta_outside(t):
 
 
 def _task_theta_nan(t):
-    t["task_theta"][0, 0, 0, 1] = float("nan")
+    t["task_theta"][1, 2, 0, 1] = float("nan")
 
 
 @pytest.mark.parametrize(
@@ -74,8 +74,8 @@ def _task_theta_nan(t):
         (_negative_action, "'action' at agent 1, trial 0, step 0 is -1"),
         (_mask_gap, "a gap ends at agent 0, trial 1, step 1"),
         (_empty_trial, "marks no step at agent 1, trial 4"),
-        (_theta_outside, "g_a=9 is outside its space"),
-        (_task_theta_nan, "log_sigma0=nan is outside its space"),
+        (_theta_outside, "'task_theta' at agent 0, trial 0, step 0: g_a=9 is outside its space"),
+        (_task_theta_nan, "at agent 1, trial 2, step 0: log_sigma0=nan is outside its space"),
     ],
 )
 def test_malformed_values_name_the_field_and_place(model, trials, corrupt, field):

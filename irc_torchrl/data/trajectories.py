@@ -96,7 +96,12 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
             f"outside the task's action set ({_describe(model.action_spec)})"
         )
     _refuse_steps_after_a_stop(trials, model)
-    model.theta_space.validate(trials["task_theta"][mask], "trials: field 'task_theta'")
+    space, task_theta = model.theta_space, trials["task_theta"]
+    if task_theta.is_floating_point():
+        bad = space.outside(task_theta).any(-1) & mask
+        if bad.any():
+            space.validate(task_theta[bad][:1], f"trials: field 'task_theta' at {_where(bad)}")
+    space.validate(task_theta[mask], "trials: field 'task_theta'")
     return trials
 
 
