@@ -215,7 +215,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "actor_dtype (float32, or float64: the frozen actor's precision, ~1.3× slower), "
         "calibrate (e.g. 2: datasets simulated at each θ̂ and refitted to calibrate the "
         "intervals; each costs about the fit again), calibration_tail (shrunk toward all "
-        "parameters' tails, or own: each parameter's 95% quantile alone), "
+        "parameters' tails, or own: each parameter's 95%% quantile alone), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
     )

@@ -95,6 +95,8 @@ def test_wrong_shapes_and_dtypes(model, trials):
         validate_trials(trials.clone().set("state", trials["state"].repeat(1, 1, 1, 2)), model)
     with pytest.raises(TypeError, match="'mask' expected dtype bool"):
         validate_trials(trials.clone().set("mask", trials["mask"].float()), model)
+    with pytest.raises(TypeError, match="'task_theta': expected a floating-point tensor"):
+        validate_trials(trials.clone().set("task_theta", trials["task_theta"].long()), model)
     with pytest.raises(ValueError, match=r"batch dims \[n_agents, n_trials, T\]"):
         validate_trials(trials[0, 0], model)
     with pytest.raises(TypeError, match="expected a TensorDict"):

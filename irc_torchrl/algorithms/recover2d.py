@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -518,7 +518,7 @@ def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
     belief_figures(trials, summary["methods"], out)
 
 
-def belief_figures(trials: TensorDict, methods: Sequence[str], out: Path) -> list[Path]:
+def belief_figures(trials: TensorDict, methods: Iterable[str], out: Path) -> list[Path]:
     """Agent 0's beliefs recovered by each method against its own, overhead and over time (the
     paper's Fig. 1E and 1F), into ``out``; ``irc report`` redraws them from ``trials/``."""
     model = Firefly2DModel()

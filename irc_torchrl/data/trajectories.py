@@ -97,11 +97,13 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
         )
     _refuse_steps_after_a_stop(trials, model)
     space, task_theta = model.theta_space, trials["task_theta"]
-    if task_theta.is_floating_point():
-        bad = space.outside(task_theta).any(-1) & mask
-        if bad.any():
-            space.validate(task_theta[bad][:1], f"trials: field 'task_theta' at {_where(bad)}")
-    space.validate(task_theta[mask], "trials: field 'task_theta'")
+    if not task_theta.is_floating_point():
+        raise TypeError(
+            f"trials: field 'task_theta': expected a floating-point tensor, got {task_theta.dtype}"
+        )
+    bad = space.outside(task_theta).any(-1) & mask
+    if bad.any():  # the first such step's values, named
+        space.validate(task_theta[bad][:1], f"trials: field 'task_theta' at {_where(bad)}")
     return trials
 
 
