@@ -28,7 +28,7 @@ def _demo(args: argparse.Namespace) -> int:
     summary = run_demo(config, args.out, show_progress=not args.quiet)
     print(format_summary(summary))
     print(
-        f"wrote {args.out}/: summary.json, config.yaml, "
+        f"wrote {args.out}/: summary.json, config.yaml, figures.npz, "
         "q_function.png, recovery.png, dp_comparison.png"
     )
     return 0

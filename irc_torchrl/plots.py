@@ -1,7 +1,8 @@
 """The paper's figures and the run reports, drawn with matplotlib and written atomically as PNG.
 
 :func:`report_run` turns a run folder (``irc fit``, ``recover``, ``demo`` or ``train``) into
-figures from its ``summary.json`` (and ``beliefs.npz``, ``trials/`` or ``logs/`` where present).
+figures from its ``summary.json`` (and ``beliefs.npz``, ``figures.npz``, ``trials/`` or ``logs/``
+where present).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from irc_torchrl.data.io import load_memmap  # noqa: E402
 from irc_torchrl.objectives.fisher import Z95  # noqa: E402
 
 __all__ = [
+    "demo_figures",
     "plot_belief_overhead",
     "plot_belief_time",
     "plot_dp_comparison",
@@ -55,9 +57,9 @@ def _save(fig: plt.Figure, path: str | Path) -> Path:
 
 
 def plot_q_function(
-    relative: torch.Tensor,
-    learned: torch.Tensor,
-    optimal: torch.Tensor,
+    relative: np.ndarray,
+    learned: np.ndarray,
+    optimal: np.ndarray,
     theta: dict,
     path: str | Path,
 ) -> Path:
@@ -157,7 +159,7 @@ def plot_recovery(
 
 
 def plot_dp_comparison(
-    dp: torch.Tensor, learned: torch.Tensor, labels: list[str], path: str | Path
+    dp: np.ndarray, learned: np.ndarray, labels: list[str], path: str | Path
 ) -> Path:
     """Mean return per θ of the learned greedy policy against the exact DP optimum."""
     fig, ax = plt.subplots(figsize=(5, 4))
@@ -173,6 +175,22 @@ def plot_dp_comparison(
     )
     ax.legend(fontsize=8)
     return _save(fig, path)
+
+
+def demo_figures(arrays: Mapping[str, np.ndarray], out: Path) -> list[Path]:
+    """The 1D demo's ``q_function.png`` (Fig. 1B) and ``dp_comparison.png``, into ``out``,
+    from the arrays of its ``figures.npz``."""
+    theta = dict(zip(arrays["theta_names"].tolist(), arrays["theta"].tolist(), strict=True))
+    labels = [str(row) for row in arrays["dp_theta"].tolist()]
+    return [
+        plot_q_function(
+            arrays["q_relative"], arrays["q_learned"], arrays["q_optimal"], theta,
+            out / "q_function.png",
+        ),
+        plot_dp_comparison(
+            arrays["dp_optimal"], arrays["dp_learned"], labels, out / "dp_comparison.png"
+        ),
+    ]  # fmt: skip
 
 
 def plot_estimates(summary: dict, path: str | Path, units: Mapping[str, str] | None = None) -> Path:
@@ -373,7 +391,8 @@ def report_run(folder: str | Path) -> list[Path]:
     truth is known, else θ̂ with intervals per recording; per method too where the summary
     has ``methods`` (``--method both``, ``irc recover``). ``beliefs.npz`` (``irc fit``): the
     recovered beliefs overhead and over time, per recording; ``trials/`` (``irc recover``, ``irc
-    demo --task firefly2d``): agent 0's recovered beliefs against its own, per method.
+    demo --task firefly2d``): agent 0's recovered beliefs against its own, per method;
+    ``figures.npz`` (``irc demo``, 1D): Q against the exact DP's, and the DP comparison.
     ``history`` (``irc train``): training curves, with the losses logged under ``logs/``.
     """
     folder = Path(folder)
@@ -386,18 +405,12 @@ def report_run(folder: str | Path) -> list[Path]:
         raise ValueError(f"report: {path} is not valid JSON ({error})") from None
     if not isinstance(summary, dict):
         raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
-    beliefs, archive_path = None, folder / "beliefs.npz"
-    if archive_path.is_file():
-        try:  # read it whole before drawing anything: a damaged archive fails here
-            with np.load(archive_path, allow_pickle=False) as archive:
-                beliefs = {key: archive[key] for key in archive.files}
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
-            raise ValueError(f"report: {archive_path} is damaged ({error})") from None
+    beliefs, figures = _archive(folder / "beliefs.npz"), _archive(folder / "figures.npz")
     trials = _recovered_trials(summary, folder / "trials")
     # every figure is drawn aside first, so a field found lacking half-way leaves none behind
     with tempfile.TemporaryDirectory(dir=folder, prefix=".report.") as scratch:
         try:
-            drawn = _report(summary, beliefs, trials, folder, path, Path(scratch))
+            drawn = _report(summary, beliefs, figures, trials, folder, path, Path(scratch))
         except (KeyError, TypeError, AttributeError, IndexError) as error:
             raise ValueError(
                 f"report: {path} lacks or mangles field {error}; {_EXPECTED}"
@@ -409,6 +422,18 @@ def report_run(folder: str | Path) -> list[Path]:
 
 #: what ``irc report`` reads, for its errors
 _EXPECTED = "expected the summary.json of irc fit, recover, demo or train"
+
+
+def _archive(path: Path) -> dict[str, np.ndarray] | None:
+    """An ``.npz`` archive of the run read whole, before anything is drawn (a damaged one fails
+    here); None where there is none."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            return {key: archive[key] for key in archive.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as error:
+        raise ValueError(f"report: {path} is damaged ({error})") from None
 
 
 def _recovered_trials(summary: dict, path: Path) -> TensorDict | None:
@@ -436,13 +461,14 @@ def _recovered_trials(summary: dict, path: Path) -> TensorDict | None:
 def _report(
     summary: dict,
     beliefs: Mapping[str, np.ndarray] | None,
+    figures: Mapping[str, np.ndarray] | None,
     trials: TensorDict | None,
     folder: Path,
     path: Path,
     out: Path,
 ) -> list[Path]:
-    """The figures of a run folder's ``summary`` (and its ``beliefs.npz`` arrays), one by one,
-    into ``out``."""
+    """The figures of a run folder's ``summary`` (and of its ``beliefs.npz``, ``figures.npz``
+    and ``trials/``), one by one, into ``out``."""
     written = []
     if summary.get("history"):
         losses = _logged_losses(folder / "logs")
@@ -457,6 +483,8 @@ def _report(
             written.append(_agent_figures(part, out / f"_{method}.png", units))
     if beliefs is not None and "state_names" in summary:
         written += _belief_figures(summary, beliefs, out)
+    if figures is not None and summary.get("task") == "firefly1d":
+        written += demo_figures(figures, out)
     if trials is not None:
         from irc_torchrl.algorithms.recover2d import belief_figures
 

@@ -3,8 +3,10 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
+from matplotlib.image import imread
 
 from irc_torchrl.cli import build_parser, main
 from irc_torchrl.config import (
@@ -157,6 +159,14 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
     assert written["seed"] == 3 and written["agents"]["n_agents"] == 3
     for figure in ("q_function.png", "recovery.png", "dp_comparison.png"):
         assert (tmp_path / "a" / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # irc report redraws every figure from summary.json and figures.npz, pixel for pixel
+    drawn = {f: imread(tmp_path / "a" / f) for f in ("q_function.png", "dp_comparison.png")}
+    for figure in tmp_path.joinpath("a").glob("*.png"):
+        figure.unlink()
+    assert main(["report", str(tmp_path / "a")]) == 0
+    for figure, pixels in drawn.items():
+        assert np.array_equal(imread(tmp_path / "a" / figure), pixels), figure
+    assert (tmp_path / "a" / "recovery.png").is_file()
 
 
 def test_worker_processes_are_refused_off_the_cpu():

@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 import yaml
 from tqdm.auto import tqdm
@@ -19,9 +20,9 @@ from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.recovery import format_parameters, recover_agents
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.config import Firefly1DConfig, config_to_dict
-from irc_torchrl.data.files import write_json, write_text
+from irc_torchrl.data.files import write_json, write_npz, write_text
 from irc_torchrl.envs.firefly1d import Firefly1DModel
-from irc_torchrl.plots import plot_dp_comparison, plot_q_function, plot_recovery
+from irc_torchrl.plots import demo_figures, plot_recovery
 
 __all__ = ["run_demo", "dp_comparison", "format_summary"]
 
@@ -45,7 +46,8 @@ def dp_comparison(
 
 
 def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = True) -> dict:
-    """Run the 1D demo into ``out``: ``config.yaml``, ``summary.json`` and three figures."""
+    """Run the 1D demo into ``out``: ``config.yaml``, ``summary.json``, three figures and
+    ``figures.npz`` (what two of them show)."""
     with torch_settings(config.threads, config.flush_denormal):
         return _run_demo(config, Path(out), show_progress)
 
@@ -85,7 +87,23 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
         "timings": {"train_s": train_s, **recovery["timings"]},
     }
     write_json(out / "summary.json", summary)
+    arrays = _figure_arrays(model, q, theta_grid, optimal, learned)
+    write_npz(out / "figures.npz", arrays)
+    plot_recovery(summary, out / "recovery.png")
+    demo_figures(arrays, out)
+    return summary
 
+
+def _figure_arrays(
+    model: Firefly1DModel,
+    q_network: torch.nn.Module,
+    theta_grid: torch.Tensor,
+    optimal: torch.Tensor,
+    learned: torch.Tensor,
+) -> dict[str, np.ndarray]:
+    """What ``q_function.png`` and ``dp_comparison.png`` show (``figures.npz``, from which
+    ``irc report`` redraws them): Q at the start of a trial at the default θ, learned and
+    exact, and the mean greedy return per θ of the grid, learned and exact."""
     theta = model.theta_space.default(torch.float64).unsqueeze(0)
     relative = torch.linspace(-model.target_range, model.target_range, 241, dtype=torch.float64)
     target = -relative.view(-1, 1)
@@ -94,22 +112,17 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     )
     step = torch.zeros(len(relative), 1, dtype=torch.long)
     with torch.no_grad():
-        q_learned = q(model.belief_features(mean, cov, target, step, theta).float())
-    plot_q_function(
-        relative,
-        q_learned,
-        optimal_values(model, theta, relative)[0],
-        model.theta_space.to_dict(theta[0]),
-        out / "q_function.png",
-    )
-    plot_recovery(summary, out / "recovery.png")
-    plot_dp_comparison(
-        optimal.mean(1),
-        learned.mean(1),
-        [str(t.tolist()) for t in theta_grid],
-        out / "dp_comparison.png",
-    )
-    return summary
+        q_learned = q_network(model.belief_features(mean, cov, target, step, theta).float())
+    return {
+        "q_relative": relative.numpy(),
+        "q_learned": q_learned.numpy(),
+        "q_optimal": optimal_values(model, theta, relative)[0].numpy(),
+        "theta": theta[0].numpy(),
+        "theta_names": np.array(model.theta_space.names),
+        "dp_theta": theta_grid.numpy(),
+        "dp_optimal": optimal.mean(1).numpy(),
+        "dp_learned": learned.mean(1).numpy(),
+    }
 
 
 def format_summary(summary: dict) -> str:

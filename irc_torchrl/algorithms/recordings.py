@@ -39,7 +39,7 @@ from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
-from irc_torchrl.data.files import atomic_path, write_json
+from irc_torchrl.data.files import write_json, write_npz
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
@@ -550,8 +550,7 @@ def _write_beliefs(
         for label, recording, belief in zip(labels, recordings, beliefs, strict=True)
         for key, value in _belief_arrays(recording, belief).items()
     }
-    with atomic_path(path, suffix=".tmp.npz") as tmp, open(tmp, "wb") as f:
-        np.savez(f, **arrays)
+    write_npz(path, arrays)
 
 
 def format_fit(summary: dict[str, Any]) -> str:

@@ -7,11 +7,13 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["atomic_dir", "atomic_path", "write_json", "write_text"]
+import numpy as np
+
+__all__ = ["atomic_dir", "atomic_path", "write_json", "write_npz", "write_text"]
 
 
 @contextmanager
@@ -76,6 +78,13 @@ def write_json(path: str | Path, data: object) -> Path:
     """Write ``data`` as strict JSON: a number that is not finite (the infinite sd of a
     parameter the data do not identify) becomes ``null``, which every JSON reader accepts."""
     return write_text(path, json.dumps(_finite(data), indent=2, allow_nan=False) + "\n")
+
+
+def write_npz(path: str | Path, arrays: Mapping[str, np.ndarray]) -> Path:
+    """Write ``arrays`` into an ``.npz`` archive (plain arrays: it reads back without pickle)."""
+    with atomic_path(path, suffix=".tmp.npz") as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    return Path(path)
 
 
 def _finite(value: object) -> object:
