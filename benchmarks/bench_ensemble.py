@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_ensemble.py [--quick] [--out runs/bench_ensemble]
+    python benchmarks/bench_ensemble.py [--quick] [--out runs/bench_ensemble] [key=value ...]
 
 For each seed (3, or 1 with ``--quick``) trains the default config and reads the CPU time at
 which success over the fixed θ grid first reached 80% and 90% (median over seeds), the
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -163,7 +164,13 @@ def ensemble_at(history: list[dict], cpu_s: float) -> tuple[float, float | None]
     return (done[-1]["success_rate"], done[-1]["mean_return"]) if done else (0.0, None)
 
 
+def _seconds(value: float | None) -> str:
+    """A CPU time as printed: whole seconds, or "never" for a threshold not reached."""
+    return "never" if value is None or math.isinf(value) else f"{value:.0f} s"
+
+
 def main() -> None:
+    sys.stdout.reconfigure(line_buffering=True)  # each line shows as it is printed
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one seed, 5 specialists")
     parser.add_argument("--out", default="runs/bench_ensemble")
@@ -182,11 +189,14 @@ def main() -> None:
     print("ensemble (CPU seconds of training, evaluation excluded)")
     for r in runs:
         print(
-            f"  seed {r['seed']}: t80 {r['t80_s']}  t90 {r['t90_s']}  "
-            f"t95%return {r['t95_return_s']}  updates/s {r['updates_per_s']:.1f}  "
+            f"  seed {r['seed']}: t80 {_seconds(r['t80_s'])}  t90 {_seconds(r['t90_s'])}  "
+            f"t95%return {_seconds(r['t95_return_s'])}  updates/s {r['updates_per_s']:.1f}  "
             f"best success {r['best']['success_rate']:.1%}"
         )
-    print(f"  median: {med}")
+    print(
+        f"  median: t80 {_seconds(med['t80_s'])}  t90 {_seconds(med['t90_s'])}  "
+        f"t95%return {_seconds(med['t95_return_s'])}  updates/s {med['updates_per_s']:.1f}"
+    )
     # 512 greedy trials per θ: with 64, one ensemble's ratio to a specialist read 0.85 where
     # 512 give 1.01, a noise larger than the 5% the comparison is about
     rows = specialists(runs[0]["actor"], args.overrides, 5, 512, out)

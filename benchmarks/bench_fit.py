@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 
 import torch
@@ -45,6 +46,7 @@ def _task(name: str, actor_dtype: str):
 
 
 def main() -> None:
+    sys.stdout.reconfigure(line_buffering=True)  # each line shows as it is printed
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--task", choices=["firefly1d", "firefly2d"], default="firefly1d")
     parser.add_argument("--method", choices=["map", "marginal"], default="map")
@@ -83,8 +85,8 @@ def main() -> None:
     gap = ((hats - batched.theta_hat).abs() / (space.high() - space.low()).double()).amax()
     print(
         f"{args.task}, {args.method}: {args.agents} agents × {args.trials} trials, "
-        f"{args.threads} thread(s), at most {args.max_iter} iterations, "
-        f"{args.actor_dtype} actor"
+        f"{args.threads} thread(s), at most {args.max_iter} iterations"
+        + (f", {args.actor_dtype} actor" if args.task == "firefly2d" else "")
     )
     print(f"batched: one call      {batched_s:8.1f} s")
     print(f"sequential: {args.agents} calls  {sequential_s:8.1f} s")
@@ -93,6 +95,7 @@ def main() -> None:
         print(f"batched: one call, {args.workers} processes {shared_s:8.1f} s")
         ratio = sequential_s / shared_s
         print(f"speed-up batched in {args.workers} processes/sequential: {ratio:.1f}×")
+        print(f"speed-up {args.workers} processes/one: {batched_s / shared_s:.2f}×")
     times = sorted(alone_s)
     print(
         f"one agent alone: median {statistics.median(times):.1f} s, fastest {times[0]:.1f} s, "

@@ -13,6 +13,7 @@ Run: ``python benchmarks/bench_lapse.py [--agents 8] [--trials 100] [--threads 2
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import torch
@@ -38,6 +39,7 @@ PAIRS = (
 
 
 def main() -> None:
+    sys.stdout.reconfigure(line_buffering=True)  # each line shows as it is printed
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--agents", type=int, default=8)
     parser.add_argument("--trials", type=int, default=100)
