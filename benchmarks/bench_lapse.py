@@ -7,7 +7,8 @@ the median relative error of each free parameter, the fraction of fits converged
 fitted motor noise per action dimension, the fitted lapse rates' range, the agents' mean trial
 length (a lapse of the forward control often stops a trial) and the time, side by side.
 
-Run: ``python benchmarks/bench_lapse.py [--agents 8] [--trials 100] [--threads 2]``.
+Run: ``python benchmarks/bench_lapse.py [--quick] [--agents 8] [--trials 100] [--threads 2]``
+(``--quick``: the three pairs of :data:`QUICK_PAIRS`, 4 agents × 40 trials, a few minutes).
 """
 
 from __future__ import annotations
@@ -36,15 +37,22 @@ PAIRS = (
     (0.0, 0.01),
     (0.0, "fit"),
 )
+#: a lapse unmodelled, fitted, and fitted where there is none
+QUICK_PAIRS = ((0.05, 0.0), (0.05, "fit"), (0.0, "fit"))
 
 
 def main() -> None:
     sys.stdout.reconfigure(line_buffering=True)  # each line shows as it is printed
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--agents", type=int, default=8)
-    parser.add_argument("--trials", type=int, default=100)
+    parser.add_argument("--quick", action="store_true", help="3 pairs, 4 agents × 40 trials")
+    parser.add_argument("--agents", type=int, default=None, help="default 8 (4 with --quick)")
+    parser.add_argument("--trials", type=int, default=None, help="default 100 (40 with --quick)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
+    if args.agents is None:
+        args.agents = 4 if args.quick else 8
+    if args.trials is None:
+        args.trials = 40 if args.quick else 100
     torch.set_num_threads(args.threads)
     actor, model, _ = load_ensemble_policy("firefly2d")
     space = model.theta_space
@@ -52,7 +60,7 @@ def main() -> None:
     theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(0))
     print(f"{args.agents} agents × {args.trials} trials, marginal, every parameter free")
     print(f"{'agents':>6} {'fit':>5}  median relative error ({', '.join(space.free_names)})")
-    for agents_lapse, fit_lapse in PAIRS:
+    for agents_lapse, fit_lapse in QUICK_PAIRS if args.quick else PAIRS:
         policy = motor_noise_policy(actor, model.action_spec, 0.1, agents_lapse)
         trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
         held = trials.select("state", "action", "target", "mask", "task_theta")

@@ -378,9 +378,12 @@ def _task_units(task: str | None) -> dict[str, str]:
 
 
 def _agent_figures(part: Mapping, path: Path, units: Mapping[str, str]) -> Path:
-    """θ̂ against the truth where every agent has one (and coverage was scored), else θ̂ alone."""
-    if "parameters" in part and all("theta_true" in a for a in part["agents"]):
-        return plot_recovery(dict(part), path.with_name(f"recovery{path.name}"), units=units)
+    """θ̂ against the truth for the agents that have one (where coverage was scored), else θ̂
+    alone."""
+    known = [a for a in part["agents"] if "theta_true" in a]
+    if "parameters" in part and known:
+        scored = {**part, "agents": known}
+        return plot_recovery(scored, path.with_name(f"recovery{path.name}"), units=units)
     return plot_estimates(dict(part), path.with_name(f"estimates{path.name}"), units)
 
 

@@ -487,8 +487,9 @@ def test_simulation_reports_each_time_step_without_changing_the_trials():
 
 def test_a_fit_of_recordings_sharing_a_name_keeps_each_apart(simulated, tmp_path):
     """Two files named alike (one simulated, one not) and a third whose name is the numbered
-    form of theirs: unique labels, a warning that the truth is known for only some, every
-    recording's own trial numbers in beliefs.npz, a particle check of the reported fit alone."""
+    form of theirs: unique labels, θ̂ scored against the truth of the one recording whose truth
+    is known, every recording's own trial numbers in beliefs.npz, a particle check of the
+    reported fit alone."""
     (tmp_path / "lab").mkdir()
     lines = (simulated / "agent0.csv").read_text().splitlines()
     rows = [row.split(",", 1) for row in lines[1:]]  # trial numbers 100, 107, ...
@@ -499,11 +500,20 @@ def test_a_fit_of_recordings_sharing_a_name_keeps_each_apart(simulated, tmp_path
     files.append(str(tmp_path / "lab" / "agent0_1.csv"))
     out = tmp_path / "fit"
     settings = ["--free", "g_v", "--method", "marginal", "max_iter=2", "particles=20"]
-    with pytest.warns(UserWarning, match="the true θ of 1 of 3 recordings is known"):
-        assert main(["fit", *files, "--out", str(out), "--quiet", *settings]) == 0
+    assert main(["fit", *files, "--out", str(out), "--quiet", *settings]) == 0
     summary = json.loads((out / "summary.json").read_text())
     labels = [agent["label"] for agent in summary["agents"]]
     assert len(set(labels)) == 3 and labels[2] == "agent0_1", labels
+    truths = [agent.get("theta_true") for agent in summary["agents"]]
+    assert truths[0] == pytest.approx(TRUTH, abs=1e-6)
+    assert truths[1:] == [None, None]
+    assert summary["truth_known"] == 1
+    first = summary["agents"][0]
+    covered = first["ci_low"]["g_v"] <= truths[0]["g_v"] <= first["ci_high"]["g_v"]
+    assert summary["parameters"]["g_v"]["coverage"] == float(covered)
+    error = abs(first["theta_hat"]["g_v"] - truths[0]["g_v"])
+    assert summary["parameters"]["g_v"]["median_abs_error"] == pytest.approx(error)
+    assert (out / "recovery.png").is_file() and not (out / "estimates.png").exists()
     assert "particle_check_marginal_s" in summary["timings"]
     assert "particle_check_map_s" not in summary["timings"]  # map's fit is not reported
     recorded = read_trials(simulated / "agent0.csv", Firefly2DModel())["trial"][:, 0]

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -300,22 +299,12 @@ def fit_recordings(
             timings["calibrate_s"] = time.perf_counter() - start
     timings = {"read_s": read_s, **timings}
     labels = _labels(paths)
-    known = sum(t is not None for t in truths)
-    if 0 < known < len(truths):
-        warnings.warn(
-            f"fit: the true θ of {known} of {len(truths)} recordings is known (irc simulate's); "
-            "θ̂ is compared with the truth only when every recording's is: fit those apart",
-            stacklevel=2,
-        )
-    theta_true = torch.stack(truths) if known == len(truths) else None
     by_method = {
-        name: _scored(
-            space, action_model, result, theta_true, paths, labels, recordings, checks[name]
-        )
+        name: _scored(space, action_model, result, truths, paths, labels, recordings, checks[name])
         for name, result in fits.items()
     }
     for name, calibration in calibrations.items():
-        _add_calibrated(by_method[name], space, calibration, fits[name], theta_true)
+        _add_calibrated(by_method[name], space, calibration, fits[name], truths)
     primary = "marginal" if method in ("marginal", "both") else "map"
     summary = {
         "task": TASK,
@@ -467,42 +456,57 @@ def _calibrate_fits(
     return calibrate_intervals(space, theta, refit, config.calibrate, config.calibration_tail)
 
 
+def _truth_scores(
+    space: ThetaSpace, truths: list[torch.Tensor | None], result: FitResult
+) -> dict[str, Any] | None:
+    """:func:`score_recovery` over the recordings whose true θ is known (``None`` if none is):
+    per-parameter coverage, errors and widths among those, the others left out."""
+    known = [i for i, truth in enumerate(truths) if truth is not None]
+    if not known:
+        return None
+    theta_true = torch.stack([truths[i] for i in known])
+    return score_recovery(space.free_names, space.names, theta_true, result.select(known))
+
+
 def _add_calibrated(
     scored: dict[str, Any],
     space: ThetaSpace,
     calibration: Calibration,
     result: FitResult,
-    theta_true: torch.Tensor | None,
+    truths: list[torch.Tensor | None],
 ) -> None:
-    """Each agent's calibrated intervals, the calibration and, with the truth, the
+    """Each agent's calibrated intervals, the calibration and, where some truth is known, the
     calibrated intervals' coverage, into one method's :func:`_scored` entry."""
     calibrated = calibration.apply(space, result)
     scored["calibration"] = calibration.to_dict()
     for agent, intervals in zip(scored["agents"], agent_intervals(calibrated), strict=True):
         agent["calibrated"] = intervals
-    if theta_true is not None:
-        scored["calibrated_parameters"] = score_recovery(
-            space.free_names, space.names, theta_true, calibrated
-        )["parameters"]
+    truth_scores = _truth_scores(space, truths, calibrated)
+    if truth_scores is not None:
+        scored["calibrated_parameters"] = truth_scores["parameters"]
 
 
 def _scored(
     space: ThetaSpace,
     action_model: CensoredGaussianActionModel,
     result: FitResult,
-    theta_true: torch.Tensor | None,
+    truths: list[torch.Tensor | None],
     paths: list[Path],
     labels: list[str],
     recordings: list[TensorDict],
     checks: list[dict | None],
 ) -> dict[str, Any]:
-    """The summary's ``agents`` (and, with the truth, ``parameters``) of one method's fit,
-    each with its motor noise and lapse rate (a fitted rate with its 95% interval from the
-    observed information)."""
-    if theta_true is not None:
-        scored = score_recovery(space.free_names, space.names, theta_true, result)
-    else:
-        scored = {"agents": [result.agent(i) for i in range(len(paths))]}
+    """The summary's ``agents`` of one method's fit, each with its motor noise and lapse rate
+    (a fitted rate with its 95% interval from the observed information) and its true θ where
+    known; with any truth, ``parameters`` scores the recordings whose truth is known."""
+    scored: dict[str, Any] = {"agents": [result.agent(i) for i in range(len(paths))]}
+    truth_scores = _truth_scores(space, truths, result)
+    if truth_scores is not None:
+        scored["parameters"] = truth_scores["parameters"]
+        scored["truth_known"] = len(truth_scores["agents"])
+        for agent, truth in zip(scored["agents"], truths, strict=True):
+            if truth is not None:
+                agent["theta_true"] = space.to_dict(truth)
     noise = action_model.motor_noise(result.nuisance)
     lapse = action_model.lapse_rate(result.nuisance)
     # the fit's intervals of the nuisance coordinates, mapped to motor noise and lapse rate
@@ -510,7 +514,6 @@ def _scored(
     noise_ci = [action_model.motor_noise(end) for end in ends]
     lapse_ci = [action_model.lapse_rate(end) for end in ends]
     for i, agent in enumerate(scored["agents"]):
-        agent.pop("nuisance", None)
         agent.update(
             file=str(paths[i]),
             label=labels[i],
@@ -606,6 +609,8 @@ def format_fit(summary: dict[str, Any]) -> str:
         for key, what in (("parameters", ""), ("calibrated_parameters", "calibrated ")):
             if key in part:
                 covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part[key].items())
-                where = f"the {what}95% interval (fraction of files)"
+                known = sum("theta_true" in agent for agent in part["agents"])
+                files = f"the {known} files whose truth is known"
+                where = f"the {what}95% interval (fraction of {files})"
                 lines.append(f"{method}: truth inside {where}: {covered}")
     return "\n".join(lines)
