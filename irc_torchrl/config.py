@@ -8,7 +8,6 @@ write the same values out for editing. ``key=value`` overrides address nested fi
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +23,7 @@ from irc_torchrl.algorithms.ensemble import (
 )
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
+from irc_torchrl.checks import positive as _positive
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
 from irc_torchrl.modules.likelihood import LAPSE_MAX
 
@@ -63,6 +63,15 @@ class AgentsConfig:
     #: "shared": every agent lives in a world with its own θ and transitions count too
     world: str = "known"
 
+    def validate(self) -> AgentsConfig:
+        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        _positive(
+            **{"agents.n_agents": self.n_agents, "agents.n_trials": self.n_trials},
+            **{"agents.temperature": self.temperature},
+        )
+        _one_of("agents.world", self.world, ("known", "shared"))
+        return self
+
 
 @dataclass
 class FitConfig:
@@ -82,8 +91,11 @@ class FitConfig:
     workers: int = 1
 
     def validate(self) -> FitConfig:
-        """Return ``self`` if the method names are known, else a one-line error naming them."""
-        _positive(**{"fit.workers": self.workers})
+        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        _positive(
+            **{"fit.workers": self.workers, "fit.n_screen": self.n_screen},
+            **{"fit.n_starts": self.n_starts, "fit.max_iter": self.max_iter},
+        )
         _one_of("fit.curvature", self.curvature, CURVATURES)
         _one_of("fit.covariance", self.covariance, COVARIANCES)
         _one_of("fit.intervals", self.intervals, INTERVALS)
@@ -106,28 +118,11 @@ class Firefly1DConfig:
 
     def validate(self) -> Firefly1DConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
-        q, a = self.q_iteration, self.agents
         if self.task != "firefly1d":
             raise ValueError(f"config: task must be 'firefly1d', got {self.task!r}")
-        sizes = ("n_envs", "rounds", "steps_per_round", "sweeps", "n_belief_basis")
-        scales = ("n_theta_basis", "belief_scale", "theta_scale")
-        _positive(
-            threads=self.threads,
-            **{f"q_iteration.{name}": getattr(q, name) for name in sizes + scales},
-            **{"agents.n_agents": a.n_agents, "agents.n_trials": a.n_trials},
-            **{"agents.temperature": a.temperature, "fit.max_iter": self.fit.max_iter},
-            **{"fit.n_screen": self.fit.n_screen, "fit.n_starts": self.fit.n_starts},
-        )
-        if not 0 < q.gamma <= 1:
-            raise ValueError(f"config: q_iteration.gamma must lie in (0, 1], got {q.gamma}")
-        if not 0 <= q.epsilon <= 1:
-            raise ValueError(f"config: q_iteration.epsilon must lie in [0, 1], got {q.epsilon}")
-        if not 0 < q.ridge < math.inf:  # without it a design of few samples is singular
-            raise ValueError(
-                f"config: q_iteration.ridge must be positive and finite, got {q.ridge}"
-            )
-        if a.world not in ("known", "shared"):
-            raise ValueError(f"config: agents.world must be 'known' or 'shared', got {a.world!r}")
+        _positive(threads=self.threads)
+        self.q_iteration.validate()
+        self.agents.validate()
         self.fit.validate()
         return self
 
@@ -263,15 +258,6 @@ def _fitted_lapse_start(value: float) -> None:
             f"config: lapse (the fitted rate's start) must be in (0, {LAPSE_MAX}) with "
             f"fit_lapse=true, got {value}"
         )
-
-
-def _positive(**values: float) -> None:
-    """Refuse a value that is not a finite number > 0 (``.inf`` would pass ``> 0``)."""
-    for name, value in values.items():
-        if not value > 0:
-            raise ValueError(f"config: {name} must be positive, got {value}")
-        if not math.isfinite(value):
-            raise ValueError(f"config: {name} must be finite, got {value}")
 
 
 def config_to_dict(config: Any) -> dict:

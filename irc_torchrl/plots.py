@@ -531,7 +531,8 @@ def _belief_figures(summary: Mapping, beliefs: Mapping[str, np.ndarray], out: Pa
             for key, value in beliefs.items()
             if key.split("/", 1)[0] == label
         }
-        title = f"{label}: beliefs under θ̂ ({summary.get('method', '')})"
+        method = summary.get("primary_method", summary.get("method", ""))
+        title = f"{label}: beliefs under θ̂ ({method})"
         written.append(
             plot_belief_overhead(
                 arrays, out / f"{label}_beliefs_overhead.png",

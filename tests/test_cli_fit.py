@@ -111,7 +111,8 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     # the hard E-step ignores the spread of the agent's beliefs: a particle filter finds the
     # recorded actions far more likely than it does
     assert agent["particle_check"]["approximation_gap"] > 5
-    assert "particle check: the likelihood's approximation loses" in table
+    gap = agent["particle_check"]["approximation_gap"]
+    assert f"particle check: the likelihood's approximation is {gap:.1f} nats below" in table
 
 
 def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulated, tmp_path):
@@ -514,9 +515,31 @@ def test_a_fit_of_recordings_sharing_a_name_keeps_each_apart(simulated, tmp_path
     error = abs(first["theta_hat"]["g_v"] - truths[0]["g_v"])
     assert summary["parameters"]["g_v"]["median_abs_error"] == pytest.approx(error)
     assert (out / "recovery.png").is_file() and not (out / "estimates.png").exists()
+    line = next(x for x in format_fit(summary).splitlines() if "truth inside" in x)
+    assert "(fraction of the 1 file whose truth is known)" in line
+    assert ("1 of these fits did NOT converge" in line) == (not first["converged"])
     assert "particle_check_marginal_s" in summary["timings"]
     assert "particle_check_map_s" not in summary["timings"]  # map's fit is not reported
     recorded = read_trials(simulated / "agent0.csv", Firefly2DModel())["trial"][:, 0]
     with np.load(out / "beliefs.npz") as beliefs:
         numbers = [beliefs[f"{label}/trial"].tolist() for label in labels]
     assert numbers == [recorded.tolist(), (100 + 7 * recorded).tolist(), recorded.tolist()]
+
+
+def test_a_rerun_into_its_own_folder_leaves_nothing_of_the_earlier_run(tmp_path):
+    """Simulating fewer agents over an earlier simulation left its other recordings, which a
+    later ``irc fit sim/*.csv`` mixed in; refitting fewer recordings left their figures."""
+    sim, fit = tmp_path / "sim", tmp_path / "fit"
+    assert main(["simulate", "--out", str(sim), "--quiet", "n_agents=2", "n_trials=3"]) == 0
+    (sim / "notes.txt").write_text("the lab's own file")
+    assert main(["simulate", "--out", str(sim), "--quiet", "n_agents=1", "n_trials=3"]) == 0
+    assert sorted(p.name for p in sim.iterdir()) == ["agent0.csv", "notes.txt", "summary.json"]
+    settings = ["--quiet", "--free", "g_v", "--method", "map", "max_iter=2", "n_screen=2"]
+    files = [str(sim / "agent0.csv"), str(tmp_path / "other.csv")]
+    shutil.copy(sim / "agent0.csv", files[1])
+    assert main(["fit", *files, "--out", str(fit), *settings]) == 0
+    assert (fit / "other_beliefs_time.png").is_file() and (fit / "recovery.png").is_file()
+    assert main(["fit", files[1], "--out", str(fit), *settings]) == 0
+    figures = sorted(p.name for p in fit.glob("*.png"))
+    drawn = ["estimates.png", "other_beliefs_overhead.png", "other_beliefs_time.png"]
+    assert figures == [*drawn, "q_function.png"]

@@ -211,10 +211,45 @@ def test_training_is_deterministic_for_a_seed():
     assert not torch.equal(a.weight, c.weight)
 
 
-@pytest.mark.parametrize("bad", [torch.tensor([[3.0, -1.0, 1.0, 0.3]])])
-def test_optimal_values_validates_theta(bad):
-    with pytest.raises(ValueError, match="g_a"):
-        optimal_values(Firefly1DModel(), bad, torch.zeros(1))
+@pytest.mark.parametrize(
+    "theta, start, gamma, message",
+    [
+        ([[3.0, -1.0, 1.0, 0.3]], [0.0], 1.0, "theta: g_a=3 is outside its space"),
+        ([1.0, -1.0, 1.0, 0.3], [0.0], 1.0, r"theta: expected \[n_theta, 4\], got \[4\]"),
+        ([[1.0, -1.0, 1.0, 0.3]], [math.nan], 1.0, "relative_start: expected finite values"),
+        ([[1.0, -1.0, 1.0, 0.3]], [[0.0]], 1.0, r"relative_start: expected finite values \[n"),
+        ([[1.0, -1.0, 1.0, 0.3]], [0.0], 2.0, r"gamma: expected a discount in \(0, 1\]"),
+        ([[1.0, -1.0, 1.0, 0.3]], [0.0], math.nan, r"gamma: expected a discount in \(0, 1\]"),
+    ],
+)
+def test_dp_refuses_bad_input_naming_the_field(theta, start, gamma, message):
+    """A NaN start gave NaN values and a finite greedy return, γ > 1 values of 1e9, a 1-D θ an
+    IndexError: each is now refused before any work."""
+    model, theta, start = Firefly1DModel(), torch.tensor(theta), torch.tensor(start)
+    with pytest.raises(ValueError, match=message):
+        optimal_values(model, theta, start, gamma)
+    if gamma == 1.0:
+        with pytest.raises(ValueError, match=message):
+            greedy_returns(model, lambda f: torch.zeros(*f.shape[:-1], 3), theta, start)
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("rounds", 0, "q_iteration.rounds must be positive, got 0"),
+        ("sweeps", 0, "q_iteration.sweeps must be positive, got 0"),
+        ("gamma", 1.5, r"q_iteration.gamma must lie in \(0, 1\]"),
+        ("epsilon", 2.0, r"q_iteration.epsilon must lie in \[0, 1\]"),
+        ("ridge", 0.0, "q_iteration.ridge must be positive, got 0"),
+        ("n_envs", 0, "q_iteration.n_envs must be positive, got 0"),
+    ],
+)
+def test_q_iteration_refuses_its_bad_settings_before_any_work(field, value, message):
+    """Called from Python (not through a config file) these trained to all-zero or diverging
+    weights, or failed deep in cholesky or indexing."""
+    config = QIterationConfig(**{field: value})
+    with pytest.raises(ValueError, match=message):
+        train_factorised_q(Firefly1DModel(), config, seed=0)
 
 
 def test_a_basis_of_one_is_the_constant_feature():

@@ -609,3 +609,49 @@ def test_fit_rejects_a_bad_worker_count(firefly1d_model, trained_q, small_trials
     loss = make_loss(firefly1d_model, trained_q, 3)
     with pytest.raises((TypeError, ValueError), match="workers: expected an integer"):
         fit_theta(loss, small_trials, workers=workers)
+
+
+@pytest.mark.parametrize("temperature", [0.0, -0.5, math.nan, math.inf, "0.5"])
+def test_a_temperature_that_is_not_a_positive_number_is_refused(trained_q, temperature):
+    """A negative τ silently simulated agents that pick the worst action, τ = 0 failed deep in
+    sampling and the action model raised "math domain error"; NaN passed."""
+    from irc_torchrl.envs.firefly1d import Firefly1DModel
+
+    message = "temperature: expected a positive finite number"
+    with pytest.raises(ValueError, match=message):
+        boltzmann_policy(Firefly1DModel(), trained_q, temperature)
+    with pytest.raises(ValueError, match=message):
+        BoltzmannActionModel(trained_q, temperature)
+
+
+def test_simulate_agents_refuses_bad_shapes_and_counts_before_any_work(firefly1d_model, space):
+    theta = space.default().repeat(2, 1)
+    cases = [
+        ((space.default(), 3, None), r"theta: expected \[n_agents, 4\], got \[4\]"),
+        ((theta, 0, None), "n_trials: expected an integer ≥ 1, got 0"),
+        ((theta, 2.5, None), "n_trials: expected an integer ≥ 1, got 2.5"),
+        ((theta, 3, space.default().repeat(3, 1)), r"task_theta: expected \[4\] or \[2, 4\]"),
+    ]
+    for (agent_theta, n_trials, task_theta), message in cases:
+        with pytest.raises(ValueError, match=message):
+            simulate_agents(firefly1d_model, None, agent_theta, n_trials, task_theta)
+
+
+def test_the_1d_demo_and_recovery_check_their_settings_when_called_from_python(
+    firefly1d_model, trained_q, tmp_path
+):
+    """``run_demo`` and ``recover_agents`` ran unchecked settings to the end (``rounds=0``:
+    a DP ratio of −1.5); they are refused before anything is written."""
+    from irc_torchrl.algorithms.demo import run_demo
+    from irc_torchrl.algorithms.recovery import recover_agents
+    from irc_torchrl.config import AgentsConfig, Firefly1DConfig, FitConfig
+
+    config = Firefly1DConfig()
+    config.q_iteration.rounds = 0
+    with pytest.raises(ValueError, match="q_iteration.rounds must be positive, got 0"):
+        run_demo(config, tmp_path / "demo", show_progress=False)
+    assert not (tmp_path / "demo").exists()
+    with pytest.raises(ValueError, match="agents.temperature must be positive"):
+        recover_agents(firefly1d_model, trained_q, AgentsConfig(temperature=-1.0), FitConfig(), 0)
+    with pytest.raises(ValueError, match="fit.max_iter must be positive, got 0"):
+        recover_agents(firefly1d_model, trained_q, AgentsConfig(), FitConfig(max_iter=0), 0)

@@ -561,3 +561,75 @@ def test_a_written_folder_gets_the_mode_mkdir_would_give_it(tmp_path, model2d, t
     finally:
         os.umask(umask)
     assert path.stat().st_mode & 0o777 == 0o755  # not mkdtemp's private 0o700
+
+
+def test_decimal_trial_numbers_survive_and_round_off_at_the_action_bounds_is_clipped(
+    tmp_path, model2d, trials2d
+):
+    """Session.trial numbers like 20240501.001 were all read as 20240502.0 (float32), and an
+    action exported as 1.0000001 passed the reader's check but failed the trials' check."""
+    columns = trials_to_columns(trials2d, model2d)
+    columns["trial"] = 20240501 + columns["trial"].astype(np.float64) / 1000 + 0.001
+    last = int(trials2d["mask"][0].sum()) - 1  # trial 0's last row of the table
+    columns["a_w"] = columns["a_w"].astype(np.float64)
+    columns["a_w"][last] = 1.0000001
+    _write_raw(columns, tmp_path / "session.csv")
+    back = read_trials(tmp_path / "session.csv", model2d)
+    expected = 20240501 + torch.arange(trials2d.shape[0], dtype=torch.float64) / 1000 + 0.001
+    assert back["trial"].dtype == torch.float64
+    assert torch.equal(back["trial"][:, 0], expected)
+    assert back["action"].max() <= 1.0 and back["action"][0, last, 1] == 1.0
+
+
+def test_several_agents_are_refused_not_pooled_into_one_recording(tmp_path, model2d, trials2d):
+    agents = torch.stack([trials2d, trials2d])
+    for name in ("t.csv", "held"):
+        with pytest.raises(ValueError, match=r"trials: holds 2 agents .*write_trials\(trials\[i\]"):
+            write_trials(agents, tmp_path / name, model2d)
+    assert list(tmp_path.iterdir()) == []
+    path = write_trials(agents[:1], tmp_path / "t.csv", model2d)
+    _assert_same(read_trials(path, model2d), trials2d)
+
+
+@pytest.mark.parametrize(
+    "scale, units, message",
+    [
+        # positions in cm, v in m/s declared as cm/s: each column within reach, v 100× slow
+        (
+            {"x": 100, "y": 100, "target_x": 100, "target_y": 100},
+            {"x": "cm", "y": "cm", "target_x": "cm", "target_y": "cm", "v": "cm/s"},
+            r"field 'v': 'x'/'y' move 10[01]× as far as 'v' says",
+        ),
+        # heading in rad declared as degrees: it turns 57× less than w says
+        ({}, {"heading": "deg"}, r"field 'w': 'heading' move 0\.017\d× as far as 'w' says"),
+    ],
+)
+def test_a_velocity_in_another_unit_than_its_positions_is_refused(
+    tmp_path, model2d, trials2d, scale, units, message
+):
+    """Every column alone was within the θ space's reach, so the fit ran and returned a
+    confident, wrong θ̂ (obs σ_v 1.33 [1.25, 1.39] for a truth of 0.27)."""
+    columns = trials_to_columns(trials2d, model2d)
+    for key, factor in scale.items():
+        columns[key] = columns[key].astype(np.float64) * factor
+    _write_raw(columns, tmp_path / "lab.csv")
+    with pytest.raises(ValueError, match=message):
+        read_trials(tmp_path / "lab.csv", model2d, units=units)
+
+
+def test_a_semicolon_export_and_a_time_in_ms_are_refused_saying_why(tmp_path, model2d, trials2d):
+    """A semicolon CSV was "the file holds no samples", and a time in ms failed on the trial's
+    length (18001 samples) with nothing pointing at the unit."""
+    columns = trials_to_columns(trials2d, model2d)
+    names = list(columns)
+    lines = [";".join(names)]
+    lines += [";".join(str(columns[n][i]) for n in names) for i in range(len(columns["time"]))]
+    (tmp_path / "excel.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"is one column; expected comma-separated values"):
+        read_trials(tmp_path / "excel.csv", model2d)
+    columns["time"] = columns["time"].astype(np.float64) * 1000
+    _write_raw(columns, tmp_path / "ms.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the resampling warning
+        with pytest.raises(ValueError, match=r"a time in ms\? declare units\.time=ms"):
+            read_trials(tmp_path / "ms.csv", model2d)

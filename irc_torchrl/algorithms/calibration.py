@@ -36,6 +36,7 @@ from tensordict.nn import TensorDictSequential
 
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.checks import count
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.fisher import Z95, narrow
@@ -306,8 +307,7 @@ def calibrate_intervals(
         n_datasets: how many datasets (each holds one per agent).
         tail: how the factors' tail is read (:meth:`Calibration.from_pivots`).
     """
-    if n_datasets < 1:
-        raise ValueError(f"n_datasets: expected an integer ≥ 1, got {n_datasets}")
+    count("n_datasets", n_datasets)
     _check_tail(tail)
     theta_generating = space.validate(theta_generating, "theta_generating")
     pivots: dict[str, list[torch.Tensor]] = {}

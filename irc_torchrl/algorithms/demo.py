@@ -48,6 +48,7 @@ def dp_comparison(
 def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = True) -> dict:
     """Run the 1D demo into ``out``: ``config.yaml``, ``summary.json``, three figures and
     ``figures.npz`` (what two of them show)."""
+    config.validate()
     with torch_settings(config.threads, config.flush_denormal):
         return _run_demo(config, Path(out), show_progress)
 

@@ -15,6 +15,20 @@ from irc_torchrl.envs.firefly1d import STOP, Firefly1DModel, gaussian_interval_p
 __all__ = ["optimal_values", "greedy_returns"]
 
 
+def _inputs(
+    model: Firefly1DModel, theta: torch.Tensor, relative_start: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """θ ``[n_theta, d]`` and the starts ``[n_start]`` in float64, each checked first."""
+    space = model.theta_space
+    theta = space.validate(theta.to(torch.float64))
+    if theta.ndim != 2:
+        raise ValueError(f"theta: expected [n_theta, {space.dim}], got {list(theta.shape)}")
+    start = torch.as_tensor(relative_start, dtype=torch.float64)
+    if start.ndim != 1 or not torch.isfinite(start).all():
+        raise ValueError(f"relative_start: expected finite values [n_start], got {start.tolist()}")
+    return theta, start
+
+
 def optimal_values(
     model: Firefly1DModel, theta: torch.Tensor, relative_start: torch.Tensor, gamma: float = 1.0
 ) -> torch.Tensor:
@@ -24,14 +38,16 @@ def optimal_values(
         theta: agent θ, ``[n_theta, d]``.
         relative_start: initial agent position minus target, ``[n_start]``.
     """
-    theta = model.theta_space.validate(theta.to(torch.float64))
+    theta, relative_start = _inputs(model, theta, relative_start)
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma: expected a discount in (0, 1], got {gamma}")
     horizon = model.max_steps
     k = torch.arange(-horizon, horizon + 1, dtype=torch.float64)
     gain = theta[:, model.theta_space.index("g_a")].view(-1, 1, 1)
     sigma0 = theta[:, model.theta_space.index("log_sigma0")].exp().view(-1, 1, 1)
     radius = theta[:, model.theta_space.index("goal_radius")].view(-1, 1, 1)
     cost = theta[:, model.theta_space.index("move_cost")].view(-1, 1, 1)
-    offset = relative_start.to(torch.float64).view(1, -1, 1) + gain * k
+    offset = relative_start.view(1, -1, 1) + gain * k
     value = torch.zeros_like(offset)
     blocked = torch.full_like(offset[..., :1], -torch.inf)
     for t in range(horizon - 1, -1, -1):
@@ -52,10 +68,10 @@ def greedy_returns(
 
     The belief is deterministic, so the return (under the agent's own model) is exact.
     """
-    theta = model.theta_space.validate(theta.to(torch.float64))
+    theta, relative_start = _inputs(model, theta, relative_start)
     n_theta, n_start = theta.shape[0], relative_start.shape[0]
     theta = theta.unsqueeze(1).expand(n_theta, n_start, -1)
-    target = -relative_start.to(torch.float64).view(1, -1, 1).expand(n_theta, n_start, 1)
+    target = -relative_start.view(1, -1, 1).expand(n_theta, n_start, 1)
     mean, cov = model.initial_belief(torch.zeros_like(target), target, theta)
     total = torch.zeros(n_theta, n_start, dtype=torch.float64)
     alive = torch.ones(n_theta, n_start, dtype=torch.bool)

@@ -39,6 +39,8 @@ from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueE
 import irc_torchrl
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
+from irc_torchrl.checks import count
+from irc_torchrl.checks import positive as check_positive
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
 from irc_torchrl.envs.firefly2d import Firefly2DEnv, Firefly2DModel, firefly2d_theta_space
@@ -236,11 +238,7 @@ class Firefly2DConfig:
             "evaluation.trials_per_theta": e.trials_per_theta,
             "evaluation.every": e.every,
         }
-        for name, value in positive.items():
-            if not value > 0:
-                raise ValueError(f"config: {name} must be positive, got {value}")
-            if not math.isfinite(value):
-                raise ValueError(f"config: {name} must be finite, got {value}")
+        check_positive(**positive)
         for name, value in {
             "ddpg.bc_weight": d.bc_weight,
             "ddpg.bc_updates": d.bc_updates,
@@ -508,8 +506,7 @@ def _first_trials(
     space.validate(thetas, "thetas")
     if thetas.ndim != 2:
         raise ValueError(f"thetas: expected shape [n, {space.dim}], got {list(thetas.shape)}")
-    if not trials_per_theta >= 1:
-        raise ValueError(f"trials_per_theta: expected an integer ≥ 1, got {trials_per_theta}")
+    count("trials_per_theta", trials_per_theta)
     batch = thetas.shape[0] * trials_per_theta
     theta = thetas.float().repeat_interleave(trials_per_theta, 0)
     env = TransformedEnv(

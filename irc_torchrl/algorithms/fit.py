@@ -15,7 +15,6 @@ The exact Hessian at θ̂, the observed Fisher information, gives the intervals 
 from __future__ import annotations
 
 import dataclasses
-import math
 import multiprocessing
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -26,6 +25,7 @@ import torch
 from tensordict import TensorDictBase
 
 from irc_torchrl.algorithms.runtime import check_workers, flushing_denormals
+from irc_torchrl.checks import count, positive_number
 from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import (
     Z95,
@@ -222,8 +222,7 @@ def fit_theta(
             f"n_screen, n_starts: expected n_starts ≥ 1 and n_screen ≥ 1 (≥ 0 with starts), "
             f"got {n_screen}, {n_starts}"
         )
-    if workers < 1:
-        raise ValueError(f"workers: expected an integer ≥ 1, got {workers}")
+    count("workers", workers)
     check_workers(workers, device)
     if min(workers, n_agents) > 1:
         settings = {
@@ -437,8 +436,7 @@ def _checked_point(
     """Validated trials, θ's free unconstrained coordinates ``[A, k]`` and the fit's
     coordinates there ``[A, k + m]`` (``nuisance`` defaulting to the action model's initial
     value), for the checks made at a given θ rather than a fit's."""
-    if isinstance(draws, bool) or not isinstance(draws, int) or draws < 1:
-        raise ValueError(f"draws: expected an integer ≥ 1, got {draws!r}")
+    count("draws", draws)
     trials = validate_trials(trials, loss.model)
     space = loss.theta_space
     n_agents, device = trials.shape[0], trials.device
@@ -796,10 +794,8 @@ def _held_step(
 
 def _check_iterations(max_iter: int, tol: float) -> None:
     """An iteration limit ≥ 1 and a positive, finite tolerance, or a one-line error."""
-    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
-        raise ValueError(f"max_iter: expected an integer ≥ 1, got {max_iter!r}")
-    if not (isinstance(tol, (int, float)) and 0 < tol < math.inf):
-        raise ValueError(f"tol: expected a positive finite number, got {tol!r}")
+    count("max_iter", max_iter)
+    positive_number("tol", tol)
 
 
 def _by_rows(fn: Callable, params: torch.Tensor, trials: TensorDictBase, budget: int) -> tuple:

@@ -16,6 +16,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import EGreedyModule, QValueModule
 
+from irc_torchrl.checks import positive
 from irc_torchrl.envs.belief import BeliefFeatures, BeliefReward, EKFBelief
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
@@ -39,6 +40,18 @@ class QIterationConfig:
     n_theta_basis: int = 16
     belief_scale: float = 3.0
     theta_scale: float = 1.5
+
+    def validate(self) -> QIterationConfig:
+        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        sizes = ("n_envs", "rounds", "steps_per_round", "sweeps", "n_belief_basis")
+        # without a ridge a design of few samples is singular
+        scales = ("n_theta_basis", "belief_scale", "theta_scale", "ridge")
+        positive(**{f"q_iteration.{name}": getattr(self, name) for name in sizes + scales})
+        if not 0 < self.gamma <= 1:
+            raise ValueError(f"config: q_iteration.gamma must lie in (0, 1], got {self.gamma}")
+        if not 0 <= self.epsilon <= 1:
+            raise ValueError(f"config: q_iteration.epsilon must lie in [0, 1], got {self.epsilon}")
+        return self
 
 
 def make_q_policy(model: TaskModel, q: FactorisedQ, epsilon: float = 0.0) -> TensorDictSequential:
@@ -119,7 +132,7 @@ def train_factorised_q(
     progress: Callable[[int, int], None] | None = None,
 ) -> FactorisedQ:
     """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)."""
-    config = config if config is not None else QIterationConfig()
+    config = (config if config is not None else QIterationConfig()).validate()
     with torch.random.fork_rng():
         torch.manual_seed(seed)  # ε-greedy draws from the global generator
         env = TransformedEnv(

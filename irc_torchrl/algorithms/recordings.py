@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
+import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -130,6 +132,7 @@ def simulate_recordings(
         bar.close()
         simulate_s = time.perf_counter() - start
         agents = []
+        earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate")]
         # a summary of an earlier run would claim the true θ of recordings it did not write
         (out / "summary.json").unlink(missing_ok=True)
         for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
@@ -156,7 +159,36 @@ def simulate_recordings(
         "timings": {"simulate_s": simulate_s, "write_s": time.perf_counter() - start - simulate_s},
     }
     write_json(out / "summary.json", summary)
+    # an earlier run's recordings this one did not rewrite would pass for this run's
+    recording = re.compile(rf"agent\d+({'|'.join(re.escape(s) for s in FORMATS.values() if s)})?")
+    stale = [n for n in earlier if isinstance(n, str) and recording.fullmatch(n)]
+    _remove_stale(out, stale, {agent["file"] for agent in agents})
     return summary
+
+
+def _earlier_agents(out: Path, command: str) -> list[dict]:
+    """The ``agents`` of the ``summary.json`` an earlier ``irc <command>`` left in ``out``."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(summary, dict) or summary.get("command") != command:
+        return []
+    agents = summary.get("agents")
+    return [a for a in agents if isinstance(a, dict)] if isinstance(agents, list) else []
+
+
+def _remove_stale(out: Path, names: Iterable[str], kept: set[str]) -> None:
+    """Remove the files (or memmap folders) ``names`` an earlier run wrote in ``out`` that this
+    run did not write again (``kept``)."""
+    for name in set(names) - kept:
+        if Path(name).name != name:  # only the run's own files, never a path out of it
+            continue
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
 
 
 def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> ThetaSpace:
@@ -310,6 +342,8 @@ def fit_recordings(
         "task": TASK,
         "command": "fit",
         "method": method,
+        # the top-level agents, their beliefs and the belief figures are this method's
+        "primary_method": primary,
         "seed": seed,
         "version": irc_torchrl.__version__,
         "checkpoint": str(ckpt["path"]),
@@ -324,9 +358,23 @@ def fit_recordings(
         summary["methods"] = by_method
     summary["state_names"] = list(model.state_names)
     summary["state_units"] = list(model.state_units)
+    earlier = [agent.get("label") for agent in _earlier_agents(out, "fit")]
     _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs)
     write_json(out / "summary.json", summary)
-    report_run(out)
+    written = {path.name for path in report_run(out)}
+    # an earlier fit's figures this one did not draw again (other recordings, no truth now)
+    figures = [
+        f"{kind}{part}.png"
+        for kind in ("recovery", "estimates")
+        for part in ("", "_map", "_marginal")
+    ]
+    figures += [
+        f"{label}_beliefs_{view}.png"
+        for label in earlier
+        if isinstance(label, str)
+        for view in ("overhead", "time")
+    ]
+    _remove_stale(out, figures, written)
     return summary
 
 
@@ -595,10 +643,11 @@ def format_fit(summary: dict[str, Any]) -> str:
             lines.append(f"  motor noise std (fitted): {noise}; {lapse}")
             check = agent.get("particle_check")
             if check:
+                gap = check["approximation_gap"]
                 lines.append(
-                    f"  particle check: the likelihood's approximation loses "
-                    f"{check['approximation_gap']:.1f} nats at θ̂ (fewest effective particles "
-                    f"in a trial: {check['min_effective_particles']:.0f})"
+                    f"  particle check: the likelihood's approximation is {abs(gap):.1f} nats "
+                    f"{'below' if gap >= 0 else 'above'} a particle filter's at θ̂ (fewest "
+                    f"effective particles in a trial: {check['min_effective_particles']:.0f})"
                 )
         calibration = part.get("calibration")
         if calibration:
@@ -609,8 +658,15 @@ def format_fit(summary: dict[str, Any]) -> str:
         for key, what in (("parameters", ""), ("calibrated_parameters", "calibrated ")):
             if key in part:
                 covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part[key].items())
-                known = sum("theta_true" in agent for agent in part["agents"])
-                files = f"the {known} files whose truth is known"
+                scored = [agent for agent in part["agents"] if "theta_true" in agent]
+                files = f"the {len(scored)} file{'s' * (len(scored) != 1)} whose truth is known"
                 where = f"the {what}95% interval (fraction of {files})"
-                lines.append(f"{method}: truth inside {where}: {covered}")
+                unconverged = sum(not agent["converged"] for agent in scored)
+                warning = (
+                    f"; {unconverged} of these fits did NOT converge, and an interval of a "
+                    "fit that did not converge may span all the data allow"
+                    if unconverged
+                    else ""
+                )
+                lines.append(f"{method}: truth inside {where}: {covered}{warning}")
     return "\n".join(lines)

@@ -138,10 +138,9 @@ class Recovery2DConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
         if self.task != "firefly2d":
             raise ValueError(f"config: task must be 'firefly2d', got {self.task!r}")
-        for name in ("threads", "n_trials", "fit.n_screen", "fit.n_starts", "fit.max_iter"):
-            value = getattr(self.fit, name[4:]) if name.startswith("fit.") else getattr(self, name)
-            if value < 1:
-                raise ValueError(f"config: {name} must be ≥ 1, got {value}")
+        for name in ("threads", "n_trials"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"config: {name} must be ≥ 1, got {getattr(self, name)}")
         for name in ("particles", "calibrate"):
             if getattr(self, name) < 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")

@@ -37,6 +37,8 @@ def recover_agents(
     Returns the simulated trials, the summary's ``agents``, ``parameters`` and ``timings``
     entries, and the fit result.
     """
+    agents.validate()
+    fit.validate()
     start = time.perf_counter()
     space = model.theta_space
     theta_true = space.sample((agents.n_agents,), generator=torch.Generator().manual_seed(seed))

@@ -17,6 +17,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
 
+from irc_torchrl.checks import count, positive_number
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
@@ -29,6 +30,7 @@ def boltzmann_policy(
     model: TaskModel, q_network: torch.nn.Module, temperature: float
 ) -> TensorDictSequential:
     """A TorchRL policy sampling actions from ``softmax(Q(b, ·, θ) / temperature)``."""
+    temperature = positive_number("temperature", temperature)
     return TensorDictSequential(
         BeliefFeatures(model),
         TensorDictModule(
@@ -99,12 +101,19 @@ def simulate_agents(
     """
     space = model.theta_space
     theta = space.validate(theta, "theta")
+    if theta.ndim != 2:
+        raise ValueError(f"theta: expected [n_agents, {space.dim}], got {list(theta.shape)}")
     n_agents = theta.shape[0]
-    batch = (n_agents, n_trials)
+    batch = (n_agents, count("n_trials", n_trials))
     world = None
     if task_theta is not None:
-        world = space.validate(task_theta, "task_theta").expand(n_agents, -1)
-        world = world.unsqueeze(1).expand(*batch, -1)
+        world = space.validate(task_theta, "task_theta")
+        if world.shape not in ((space.dim,), (n_agents, space.dim)):
+            raise ValueError(
+                f"task_theta: expected [{space.dim}] or [{n_agents}, {space.dim}] (one per "
+                f"agent), got {list(world.shape)}"
+            )
+        world = world.expand(n_agents, -1).unsqueeze(1).expand(*batch, -1)
     env = TransformedEnv(
         TaskEnv(
             model,

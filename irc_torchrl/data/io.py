@@ -31,6 +31,7 @@ from irc_torchrl.data.validate import (
     THETA_PREFIX,
     Trial,
     check_columns,
+    check_kinematics,
     check_trial,
     required_columns,
     split_trials,
@@ -95,19 +96,26 @@ def read_trials(
     for label, trial in trials:
         check_trial(label, trial, model, source, time_column)
     trials = _on_model_grid(trials, model, source, time_column, trial_column, resample)
+    check_kinematics(trials, model, source, time_column)
     held = _pack(trials, model, time_column, trial_column)
     validate_trials(held, model)
     return held
 
 
 def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> Path:
-    """Write held trials (``[n_trials, T]`` or ``[n_agents, n_trials, T]``) to ``path``.
+    """Write one agent's held trials (``[n_trials, T]``, or ``[1, n_trials, T]``) to ``path``.
 
     The format follows the suffix (``.npz``, ``.csv``, ``.nwb``); a path without a suffix is
-    a TensorDict memmap folder. Agents are flattened into consecutive trials. Only the
-    recorded steps (``mask``) are written to the tables; the folder keeps the padded layout.
+    a TensorDict memmap folder. Only the recorded steps (``mask``) are written to the tables;
+    the folder keeps the padded layout. A recording is one agent's, as :func:`read_trials`
+    and ``irc fit`` read it: several agents are refused, not pooled into one.
     """
     path = Path(path)
+    if trials.ndim == 3 and trials.shape[0] != 1:
+        raise ValueError(
+            f"trials: holds {trials.shape[0]} agents ([n_agents, n_trials, T]); a recording "
+            "is one agent's: write each with write_trials(trials[i], ...)"
+        )
     trials = validate_trials(trials, model).reshape(-1, trials.shape[-1])
     if path.suffix == "":
         held = trials.select(*TRIAL_KEYS).clone()
@@ -221,6 +229,11 @@ def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str)
     if not rows:
         return {}
     header = [name.strip() for name in rows[0]]
+    if len(header) == 1 and any(mark in header[0] for mark in ";\t|"):
+        raise ValueError(
+            f"{path}: the header {header[0][:60]!r} is one column; expected comma-separated "
+            "values (export with commas, not semicolons or tabs)"
+        )
     repeated = sorted({name for name in header if header.count(name) > 1})
     if repeated:
         raise ValueError(
@@ -403,10 +416,15 @@ def _on_model_grid(
             }
             time = grid
         if len(time) > model.max_steps:
+            hint = (
+                f" (the recording steps {step:.6g} s: a time in ms? declare units.{time_column}=ms)"
+                if resample and step > 10 * model.dt
+                else ""
+            )
             raise ValueError(
                 f"{source}: trial {label}, field {time_column!r}: {len(time)} samples, each "
                 f"read as a model step; the task ends every trial within max_steps="
-                f"{model.max_steps} steps of {model.dt:g} s, so cut or drop longer trials"
+                f"{model.max_steps} steps of {model.dt:g} s, so cut or drop longer trials{hint}"
             )
         out.append((label, {**trial, time_column: time}))
     return out
@@ -431,10 +449,16 @@ def _pack(
         for name, value in zip(theta_names, default, strict=True):
             trial.setdefault(name, np.full(len(trial[time_column]), value))
     lengths = torch.tensor([len(t[time_column]) for _, t in trials])
-    if isinstance(model.action_spec, Categorical):
+    spec = model.action_spec
+    if isinstance(spec, Categorical):
         action = stack(model.action_names, torch.int64)[..., 0]
-    else:
-        action = stack(model.action_names, torch.float32)
+    else:  # values past a bound by the checks' slack are an export's round-off
+        action = stack(model.action_names, torch.float32).clamp(spec.space.low, spec.space.high)
+    labels = [label for label, _ in trials]
+    # a label like 20240501.001 (session.trial) needs float64 to stay itself
+    numbers = torch.tensor(
+        labels, dtype=torch.float64 if any(isinstance(n, float) for n in labels) else torch.int64
+    )
     return TensorDict(
         {
             "state": stack(model.state_names, torch.float32),
@@ -443,7 +467,7 @@ def _pack(
             "mask": torch.arange(steps) < lengths.unsqueeze(-1),
             "task_theta": stack(theta_names, torch.float32),
             "time": stack([time_column], torch.float32)[..., 0],
-            "trial": torch.tensor([label for label, _ in trials]).unsqueeze(-1).expand(-1, steps),
+            "trial": numbers.unsqueeze(-1).expand(-1, steps),
         },
         batch_size=[len(trials), steps],
     )

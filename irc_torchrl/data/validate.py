@@ -23,6 +23,7 @@ __all__ = [
     "ABSURD",
     "THETA_PREFIX",
     "check_columns",
+    "check_kinematics",
     "check_trial",
     "required_columns",
     "split_trials",
@@ -37,6 +38,9 @@ Trial = dict[str, np.ndarray]
 
 #: the unit a recording most likely used by mistake, per kind of checked field
 _LIKELY_MISTAKE = {"distance": "cm", "distance/s": "cm/s", "rad/s": "deg/s"}
+#: how far the distance the positions (or angles) cover may differ from what their velocity
+#: column says, as a ratio either way: a unit mistake is 17× (deg) to 1000× (ms)
+KINEMATIC_RATIO = 3.0
 
 
 def required_columns(model: TaskModel, time_column: str, trial_column: str) -> list[str]:
@@ -225,7 +229,8 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
             raise ValueError(
                 f"{where}, field {name!r}: {kind}{rate[i]:.6g} {unit} at time {at[i]:.6g} s; "
                 f"expected below {limit:.6g} {unit} ({ABSURD:g}× the θ space's fastest). "
-                f"A unit mistake? Pass units={{{name.split('/')[0]!r}: {hint!r}}} or similar"
+                f"A unit mistake? Declare it: units.{name.split('/')[0]}={hint} (irc fit) or "
+                f"units={{{name.split('/')[0]!r}: {hint!r}}} (read_trials), or similar"
             )
     for name, unit in units.items():
         if unit == "rad":
@@ -234,6 +239,42 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
                 i = int(np.flatnonzero(jump > math.pi)[0])
                 raise ValueError(
                     f"{where}, field {name!r}: changes by {jump[i]:.6g} rad at time "
-                    f"{time[i + 1]:.6g} s; expected < π per sample (degrees? pass "
-                    f"units={{{name!r}: 'deg'}}; a wrapped angle? np.unwrap it)"
+                    f"{time[i + 1]:.6g} s; expected < π per sample (degrees? declare "
+                    f"units.{name}=deg, or units={{{name!r}: 'deg'}} in Python; a wrapped "
+                    "angle? np.unwrap it)"
                 )
+
+
+def check_kinematics(
+    trials: list[tuple[int | float, Trial]], model: TaskModel, source: str, time_column: str
+) -> None:
+    """Refuse a recording whose positions (angles) do not move as its velocity column says.
+
+    Each column is checked alone against the θ space's reach, so a velocity declared in the
+    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes; here the whole
+    recording's travel, ``Σ |Δ position|``, is set against ``Σ |velocity| Δt`` of the one
+    velocity column of that unit, and they must agree within :data:`KINEMATIC_RATIO`.
+    """
+    units = dict(zip(model.state_names, model.state_units, strict=True))
+    for moving, rate_unit in (("distance", "distance/s"), ("rad", "rad/s")):
+        moved = [n for n, u in units.items() if u == moving]
+        rates = [n for n, u in units.items() if u == rate_unit]
+        if not moved or len(rates) != 1:
+            continue
+        travelled = said = 0.0
+        for _, trial in trials:
+            steps = np.diff(np.asarray(trial[time_column], dtype=np.float64))
+            place = np.stack([np.asarray(trial[n], dtype=np.float64) for n in moved], -1)
+            travelled += float(np.linalg.norm(np.diff(place, axis=0), axis=-1).sum())
+            said += float((np.abs(np.asarray(trial[rates[0]], np.float64)[:-1]) * steps).sum())
+        if max(travelled, said) == 0:
+            continue
+        ratio = travelled / said if said > 0 else math.inf
+        if not 1 / KINEMATIC_RATIO <= ratio <= KINEMATIC_RATIO:
+            fields = "/".join(repr(n) for n in moved)
+            raise ValueError(
+                f"{source}: field {rates[0]!r}: {fields} move {ratio:.3g}× as far as "
+                f"{rates[0]!r} says ({travelled:.6g} against {said:.6g} {moving} over the "
+                f"recording); expected about 1: are {fields} and {rates[0]!r} in the units "
+                f"declared? (units.{rates[0]}=... on the command line)"
+            )

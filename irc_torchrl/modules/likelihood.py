@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from irc_torchrl.checks import positive_number
+
 __all__ = [
     "LAPSE_MAX",
     "BoltzmannActionModel",
@@ -97,6 +99,7 @@ class BoltzmannActionModel(nn.Module):
         super().__init__()
         # a frozen copy: the caller's network stays trainable (and leaves this model as it is)
         self.q_network = copy.deepcopy(q_network).requires_grad_(False)
+        temperature = positive_number("temperature", temperature)
         self.nuisance_init = torch.tensor([math.log(temperature)], device="cpu")
 
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:

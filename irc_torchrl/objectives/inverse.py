@@ -161,7 +161,10 @@ class InverseRationalLoss(LossModule):
 
         θ ``[n_agents, d]`` and the nuisance ``[n_agents, dn]`` may also be given per trial
         (``[n_agents, n_trials, ·]``); with ``per_trial`` each trial's own log-likelihood
-        ``[n_agents, n_trials]`` is returned (what per-trial scores are made of).
+        ``[n_agents, n_trials]`` is returned (what per-trial scores are made of). Neither θ
+        nor the trials are checked here (the fit calls this for every row of every pass, and
+        one row's NaN must not stop the others): :meth:`forward` and ``fit_theta`` check
+        theirs, and a θ outside its space extrapolates the networks.
         """
         total, _ = self.log_likelihood_and_draws(theta, nuisance, trials)
         return total if per_trial else total.sum(1)

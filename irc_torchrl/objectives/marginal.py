@@ -36,6 +36,7 @@ from typing import NamedTuple
 import torch
 from torch.func import vjp, vmap
 
+from irc_torchrl.checks import count
 from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_update
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
@@ -163,8 +164,7 @@ def check_mixture(model: TaskModel, components: int, final_steps: int) -> None:
             f"components: expected 1 or more than the belief's {model.state_dim} dimensions, "
             f"got {components}"
         )
-    if final_steps < 1:
-        raise ValueError(f"final_steps: expected an integer ≥ 1, got {final_steps}")
+    count("final_steps", final_steps)
 
 
 class _Recorded(NamedTuple):
@@ -317,8 +317,7 @@ def particle_log_likelihood(
         the log-likelihood estimate ``[*B]`` and the smallest effective sample size of the
         weights over the trial's steps ``[*B]`` (near 1: too few particles for that trial).
     """
-    if n_particles < 1:
-        raise ValueError(f"n_particles: expected an integer ≥ 1, got {n_particles}")
+    count("n_particles", n_particles)
     generator = generator if generator is not None else torch.Generator().manual_seed(0)
     batch, steps = state.shape[:-2], state.shape[-2]
     flat = batch.numel()
