@@ -103,7 +103,8 @@ def _fit(args: argparse.Namespace) -> int:
     setting = [bool(KEY_VALUE.match(i)) and not Path(i).exists() for i in items]
     files = [i for i, s in zip(items, setting, strict=True) if not s]
     config = load_recording_fit_config([i for i, s in zip(items, setting, strict=True) if s])
-    free = [n.strip() for n in args.free.split(",") if n.strip()] if args.free else None
+    # an empty --free names nothing to fit (refused), not every parameter
+    free = None if args.free is None else [n.strip() for n in args.free.split(",") if n.strip()]
     summary = fit_recordings(
         files,
         args.out,

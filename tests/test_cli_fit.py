@@ -257,6 +257,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "max_iters=3"], "unknown key 'max_iters'; valid keys: n_screen"),
         (["fit", "FILE", "--free", "g_v,g_x"], "unknown θ parameter 'g_x'"),
         (["fit", "FILE", "--free", "sigma_pos"], "'sigma_pos' is fixed"),
+        (["fit", "FILE", "--free", ""], "free: no parameter to fit"),
+        (["fit", "FILE", "FILE"], "agent0.csv is given twice; expected each recording once"),
         (["fit", "FILE", "--free", "g_v", "theta.g_v=1.0"], "both fitted"),
         (["fit", "FILE", "covariance=robust"], "covariance must be one of"),
         (["recover", "fit.covariance=robust"], "fit.covariance must be one of"),
@@ -543,3 +545,26 @@ def test_a_rerun_into_its_own_folder_leaves_nothing_of_the_earlier_run(tmp_path)
     figures = sorted(p.name for p in fit.glob("*.png"))
     drawn = ["estimates.png", "other_beliefs_overhead.png", "other_beliefs_time.png"]
     assert figures == [*drawn, "q_function.png"]
+
+
+def test_a_fit_of_a_recording_in_cm_reports_its_distances_in_metres(simulated, tmp_path):
+    """With units declared the recording is converted to metres: θ̂ and the figures' axes said
+    "distance", which a lab reading a goal radius of 0.5 could take for its own cm."""
+    lines = (simulated / "agent0.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    scaled = [header.index(n) for n in ("x", "y", "target_x", "target_y", "v")]
+    rows = []
+    for line in lines[1:]:
+        cells = line.split(",")
+        cells = [repr(float(c) * 100) if i in scaled else c for i, c in enumerate(cells)]
+        rows.append(",".join(cells))
+    (tmp_path / "cm.csv").write_text("\n".join([lines[0], *rows]) + "\n")
+    units = [f"units.{n}=cm" for n in ("x", "y", "target_x", "target_y")] + ["units.v=cm/s"]
+    settings = ["--quiet", "--free", "g_v,goal_radius", "--method", "map", "max_iter=2"]
+    cm_file, m_file = str(tmp_path / "cm.csv"), str(simulated / "agent0.csv")
+    assert main(["fit", cm_file, "--out", str(tmp_path / "cm"), *settings, *units]) == 0
+    assert main(["fit", m_file, "--out", str(tmp_path / "m"), *settings]) == 0
+    cm, m = (json.loads((tmp_path / f / "summary.json").read_text()) for f in ("cm", "m"))
+    assert cm["units"]["goal_radius"] == "m" and m["units"]["goal_radius"] == "distance"
+    assert cm["state_units"][:2] == ["m", "m"] and cm["state_units"][3] == "m/s"
+    assert cm["agents"][0]["theta_hat"] == pytest.approx(m["agents"][0]["theta_hat"], rel=1e-5)

@@ -30,3 +30,80 @@ def test_non_integer_trial_numbers_are_refused_before_writing(tmp_path):
     write_trials(_numbered(model, [3.0, 5.0, 7.0]), tmp_path / "t.nwb", model)
     back = read_trials(tmp_path / "t.nwb", model)
     assert back["trial"][:, 0].tolist() == [3, 5, 7]
+
+
+def _lab_nwb(path, columns, centimetres=False, between_trials=False, without=()):
+    """An NWB file laid out as the schema says, written the way a lab's rig might: positions
+    in cm declared by NWB's own ``conversion``, samples through the gaps between trials, or
+    a series not exported."""
+    import datetime
+    import uuid
+
+    import numpy as np
+    from pynwb import NWBHDF5IO, NWBFile, TimeSeries
+    from pynwb.behavior import BehavioralTimeSeries, CompassDirection, Position, SpatialSeries
+
+    nwb = NWBFile("lab", str(uuid.uuid4()), datetime.datetime.now(datetime.UTC))
+    for name in ("target_x", "target_y"):
+        nwb.add_trial_column(name=name, description=name)
+    trial, stamps, start = columns["trial"], np.empty(len(columns["trial"])), 10.0
+    for label in dict.fromkeys(trial.tolist()):
+        rows = trial == label
+        stamps[rows] = start + columns["time"][rows]
+        targets = {n: float(columns[n][rows][0]) for n in ("target_x", "target_y")}
+        nwb.add_trial(start_time=start, stop_time=float(stamps[rows][-1]), id=int(label), **targets)
+        start = float(stamps[rows][-1]) + 2.0
+    data = {n: columns[n].astype(np.float64) for n in ("x", "y", "heading", "v", "w", "a_v", "a_w")}
+    if between_trials:  # the rig keeps sampling, the agent parked, between trials
+        gaps = np.arange(stamps[0], stamps[-1], 0.05)
+        gaps = gaps[np.abs(gaps[:, None] - stamps[None]).min(1) > 0.5]
+        parked = {n: np.full(len(gaps), 0.3) for n in data}
+        order = np.argsort(np.concatenate([stamps, gaps]))
+        stamps = np.concatenate([stamps, gaps])[order]
+        data = {n: np.concatenate([data[n], parked[n]])[order] for n in data}
+    scale = 100.0 if centimetres else 1.0
+    behavior = nwb.create_processing_module("behavior", "behaviour")
+    position = SpatialSeries(
+        name="position", data=np.stack([data["x"], data["y"]], -1) * scale, timestamps=stamps,
+        reference_frame="arena", unit="metres", conversion=1 / scale,
+    )  # fmt: skip
+    behavior.add(Position(spatial_series=position, name="Position"))
+    heading = SpatialSeries(
+        name="heading", data=data["heading"], timestamps=position, reference_frame="x",
+        unit="radians",
+    )  # fmt: skip
+    behavior.add(CompassDirection(name="CompassDirection", spatial_series=[heading]))
+    for container, names in (("state", ("v", "w")), ("action", ("a_v", "a_w"))):
+        series = [
+            TimeSeries(name=n, data=data[n], timestamps=position, unit="SI")
+            for n in names
+            if n not in without
+        ]
+        behavior.add(BehavioralTimeSeries(name=container, time_series=series))
+    with NWBHDF5IO(str(path), "w") as io:
+        io.write(nwb)
+
+
+def test_a_rigs_nwb_file_is_read_as_nwb_means_it(tmp_path):
+    """NWB's ``conversion`` was ignored (a cm file refused as a unit mistake), samples between
+    the trials table's trials refused the file, and a missing series was called a NaN gap."""
+    from irc_torchrl.data.io import trials_to_columns
+
+    model = Firefly2DModel()
+    trials = _numbered(model, [3.0, 5.0, 7.0])
+    columns = trials_to_columns(trials, model)
+    plain = tmp_path / "plain.nwb"
+    _lab_nwb(plain, columns)
+    expected = read_trials(plain, model)
+    for name, options in {
+        "cm.nwb": {"centimetres": True},
+        "rig.nwb": {"between_trials": True},
+    }.items():
+        _lab_nwb(tmp_path / name, columns, **options)
+        back = read_trials(tmp_path / name, model)
+        assert back["trial"][:, 0].tolist() == [3, 5, 7]
+        torch.testing.assert_close(back["state"], expected["state"])
+        assert torch.equal(back["mask"], expected["mask"])
+    _lab_nwb(tmp_path / "no_v.nwb", columns, without=("v",))
+    with pytest.raises(KeyError, match="missing the series 'v'; expected it in 'state'"):
+        read_trials(tmp_path / "no_v.nwb", model)

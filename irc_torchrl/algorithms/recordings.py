@@ -16,7 +16,7 @@ import json
 import re
 import shutil
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -218,8 +218,15 @@ def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> The
     return space.fix(**held)
 
 
-def _units(space: ThetaSpace) -> dict[str, str]:
-    return {p.name: p.unit for p in space.parameters}
+def _units(space: ThetaSpace, declared: Mapping[str, str] | None = None) -> dict[str, str]:
+    """Each parameter's unit; with recorded units declared (``units.x=cm``), the task's
+    distance unit reads as the metre they were converted to."""
+    return {p.name: _in_metres(p.unit, declared) for p in space.parameters}
+
+
+def _in_metres(unit: str, declared: Mapping[str, str] | None) -> str:
+    """``unit`` with the task's "distance" named "m" where recorded units were declared."""
+    return unit.replace("distance", "m") if declared else unit
 
 
 def _simulated_truth(path: Path, space: ThetaSpace) -> torch.Tensor | None:
@@ -305,6 +312,10 @@ def fit_recordings(
     target = resolve_device(device)
     check_workers(config.workers, target)
     paths = [Path(p) for p in paths]
+    seen: dict[Path, Path] = {}
+    for path in paths:
+        if seen.setdefault(path.resolve(), path) is not path:
+            raise ValueError(f"fit: {path} is given twice; expected each recording once")
     out = Path(out)
     with torch_settings(config.threads, True):
         actor, model, ckpt = load_ensemble_policy(checkpoint)
@@ -350,14 +361,14 @@ def fit_recordings(
         "free": space.free_names,
         "fixed": {n: space.fixed[n] for n in space.names if n in space.fixed},
         "config": config_to_dict(config),
-        "units": _units(space),
+        "units": _units(space, config.units),
         **by_method[primary],
         "timings": timings,
     }
     if method == "both":
         summary["methods"] = by_method
     summary["state_names"] = list(model.state_names)
-    summary["state_units"] = list(model.state_units)
+    summary["state_units"] = [_in_metres(unit, config.units) for unit in model.state_units]
     earlier = [agent.get("label") for agent in _earlier_agents(out, "fit")]
     _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs)
     write_json(out / "summary.json", summary)

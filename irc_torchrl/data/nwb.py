@@ -137,7 +137,7 @@ def read_nwb(
                 "Position 'position' SpatialSeries (see docs/trajectory_schema.md)"
             ) from None
         stamps = np.asarray(pos.timestamps[:], dtype=np.float64)
-        data = np.asarray(pos.data[:]).reshape(len(stamps), -1)
+        data = _values(pos).reshape(len(stamps), -1)
         position, angles, others = _layout(model)
         table: Columns = {n: data[:, i] for i, n in enumerate(position)}
         containers = {
@@ -147,9 +147,13 @@ def read_nwb(
         }
         for name, container in containers.items():
             try:
-                table[name] = np.asarray(behavior[container][name].data[:])
+                series = behavior[container][name]
             except KeyError:
-                table[name] = np.full(len(stamps), np.nan)  # reported as a gap, naming the field
+                raise KeyError(
+                    f"{path}: missing the series {name!r}; expected it in {container!r} of "
+                    "processing module 'behavior' (see docs/trajectory_schema.md)"
+                ) from None
+            table[name] = _values(series)
         if nwb.trials is None:
             raise KeyError(f"{path}: missing the trials table; expected one row per trial")
         trials = nwb.trials.to_dataframe()
@@ -163,4 +167,13 @@ def read_nwb(
             time[rows] = stamps[rows] - row["start_time"]
             for name, values in per_trial.items():
                 values[rows] = row[name]
-    return {trial_column: trial, time_column: time, **table, **per_trial}
+    # a rig records between trials too: only the trials table's trials are the task's
+    inside = np.isfinite(trial)
+    columns = {trial_column: trial, time_column: time, **table, **per_trial}
+    return {name: np.asarray(values)[inside] for name, values in columns.items()}
+
+
+def _values(series: TimeSeries) -> np.ndarray:
+    """A series' data in its unit: NWB stores ``data × conversion + offset`` as the value."""
+    offset = getattr(series, "offset", 0.0) or 0.0
+    return np.asarray(series.data[:], dtype=np.float64) * series.conversion + offset
