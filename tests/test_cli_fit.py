@@ -539,7 +539,11 @@ def test_a_rerun_into_its_own_folder_leaves_nothing_of_the_earlier_run(tmp_path)
     settings = ["--quiet", "--free", "g_v", "--method", "map", "max_iter=2", "n_screen=2"]
     files = [str(sim / "agent0.csv"), str(tmp_path / "other.csv")]
     shutil.copy(sim / "agent0.csv", files[1])
+    fit.mkdir()
+    (fit / "estimates_map.png").write_bytes(b"the lab's own figure, no fit's")
     assert main(["fit", *files, "--out", str(fit), *settings]) == 0
+    assert (fit / "estimates_map.png").read_bytes() == b"the lab's own figure, no fit's"
+    (fit / "estimates_map.png").unlink()
     assert (fit / "other_beliefs_time.png").is_file() and (fit / "recovery.png").is_file()
     assert main(["fit", files[1], "--out", str(fit), *settings]) == 0
     figures = sorted(p.name for p in fit.glob("*.png"))
@@ -564,7 +568,10 @@ def test_a_fit_of_a_recording_in_cm_reports_its_distances_in_metres(simulated, t
     cm_file, m_file = str(tmp_path / "cm.csv"), str(simulated / "agent0.csv")
     assert main(["fit", cm_file, "--out", str(tmp_path / "cm"), *settings, *units]) == 0
     assert main(["fit", m_file, "--out", str(tmp_path / "m"), *settings]) == 0
-    cm, m = (json.loads((tmp_path / f / "summary.json").read_text()) for f in ("cm", "m"))
+    seconds = ["units.time=s", "units.heading=rad"]  # declared, but no distance among them
+    assert main(["fit", m_file, "--out", str(tmp_path / "s"), *settings, *seconds]) == 0
+    cm, m, s = (json.loads((tmp_path / f / "summary.json").read_text()) for f in ("cm", "m", "s"))
     assert cm["units"]["goal_radius"] == "m" and m["units"]["goal_radius"] == "distance"
+    assert s["units"]["goal_radius"] == "distance" and s["state_units"][0] == "distance"
     assert cm["state_units"][:2] == ["m", "m"] and cm["state_units"][3] == "m/s"
     assert cm["agents"][0]["theta_hat"] == pytest.approx(m["agents"][0]["theta_hat"], rel=1e-5)

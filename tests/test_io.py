@@ -260,16 +260,26 @@ def test_units_are_converted_to_the_model_units(tmp_path, model2d, trials2d):
 
 
 def test_a_heading_wrapped_into_plus_minus_pi_is_unwrapped(tmp_path, model2d, trials2d):
-    """An arena-frame recording whose heading comes from atan2 (wrapped at ±π) reads as the
-    continuous heading the model steps; positions and targets are kept as recorded."""
-    columns = trials_to_columns(trials2d, model2d)
-    heading = columns["heading"].astype(np.float64) + math.pi - 0.02  # facing -x: crosses ±π
-    columns["heading"] = np.angle(np.exp(1j * heading))
+    """An arena-frame recording (the task turned by about π) whose heading comes from atan2
+    (wrapped at ±π) reads as the continuous heading the model steps; positions and targets
+    are kept as recorded."""
+    turn = math.pi - 0.02  # the agent starts facing -x: its heading crosses ±π
+    cos, sin = math.cos(turn), math.sin(turn)
+    columns = {k: v.astype(np.float64) for k, v in trials_to_columns(trials2d, model2d).items()}
+    for x, y in (("x", "y"), ("target_x", "target_y")):
+        a, b = columns[x], columns[y]
+        columns[x], columns[y] = cos * a - sin * b, sin * a + cos * b
+    columns["heading"] = np.angle(np.exp(1j * (columns["heading"] + turn)))
     assert (np.abs(np.diff(columns["heading"])) > math.pi).any()  # the file does wrap
     _write_raw(columns, tmp_path / "arena.csv")
     back = read_trials(tmp_path / "arena.csv", model2d)
     expected = trials2d.clone()
-    expected["state"][..., 2] += math.pi - 0.02
+    state, target = expected["state"].double(), expected["target"].double()
+    for part in (state, target):
+        a, b = part[..., 0].clone(), part[..., 1].clone()
+        part[..., 0], part[..., 1] = cos * a - sin * b, sin * a + cos * b
+    state[..., 2] += turn
+    expected["state"], expected["target"] = state.float(), target.float()
     _assert_same(back, expected)
 
 
@@ -579,12 +589,15 @@ def test_decimal_trial_numbers_survive_and_round_off_at_the_action_bounds_is_cli
     assert back["trial"].dtype == torch.float64
     assert torch.equal(back["trial"][:, 0], expected)
     assert back["action"].max() <= 1.0 and back["action"][0, last, 1] == 1.0
+    for suffix in (".csv", ".npz", ""):  # written and read back, they stay themselves
+        again = read_trials(write_trials(back, tmp_path / f"again{suffix}", model2d), model2d)
+        assert torch.equal(again["trial"], back["trial"])
 
 
 def test_several_agents_are_refused_not_pooled_into_one_recording(tmp_path, model2d, trials2d):
     agents = torch.stack([trials2d, trials2d])
     for name in ("t.csv", "held"):
-        with pytest.raises(ValueError, match=r"trials: holds 2 agents .*write_trials\(trials\[i\]"):
+        with pytest.raises(ValueError, match=r"trials: holds the trials of 2 agents .*trials\[i\]"):
             write_trials(agents, tmp_path / name, model2d)
     assert list(tmp_path.iterdir()) == []
     path = write_trials(agents[:1], tmp_path / "t.csv", model2d)
@@ -598,10 +611,11 @@ def test_several_agents_are_refused_not_pooled_into_one_recording(tmp_path, mode
         (
             {"x": 100, "y": 100, "target_x": 100, "target_y": 100},
             {"x": "cm", "y": "cm", "target_x": "cm", "target_y": "cm", "v": "cm/s"},
-            r"field 'v': 'x'/'y' move 10[01]× as far as 'v' says",
+            r"field\(s\) 'x'/'y': each step moves 10[01]× as far as the task's transition "
+            r"predicts from 'v'",
         ),
         # heading in rad declared as degrees: it turns 57× less than w says
-        ({}, {"heading": "deg"}, r"field 'w': 'heading' move 0\.017\d× as far as 'w' says"),
+        ({}, {"heading": "deg"}, r"field\(s\) 'heading': each step moves 0\.017\d× as far"),
     ],
 )
 def test_a_velocity_in_another_unit_than_its_positions_is_refused(
@@ -633,3 +647,27 @@ def test_a_semicolon_export_and_a_time_in_ms_are_refused_saying_why(tmp_path, mo
         warnings.simplefilter("ignore")  # the resampling warning
         with pytest.raises(ValueError, match=r"a time in ms\? declare units\.time=ms"):
             read_trials(tmp_path / "ms.csv", model2d)
+
+
+def test_a_recording_that_hardly_moves_or_jitters_is_not_taken_for_a_unit_mistake(
+    tmp_path, model2d, trials2d
+):
+    """The kinematic check regresses recorded steps on predicted ones: an agent standing
+    still under tracker jitter, or a straight path whose heading carries float round-off,
+    leaves the slope unsure and is read, where a ratio of path lengths refused it."""
+    columns = trials_to_columns(trials2d, model2d)
+    rng = np.random.default_rng(0)
+    still = {k: v.astype(np.float64) for k, v in columns.items()}
+    for name in ("v", "w", "a_v", "a_w"):
+        still[name] = np.zeros_like(still[name])
+    for name in ("x", "y"):  # the agent stands where it started; the tracker jitters by 1 mm
+        first = {t: still[name][still["trial"] == t][0] for t in np.unique(still["trial"])}
+        still[name] = np.array([first[t] for t in still["trial"]]) + 1e-3 * rng.standard_normal(
+            len(still[name])
+        )
+    still["heading"] = np.zeros_like(still["heading"]) + 1e-7 * rng.standard_normal(
+        len(still["heading"])
+    )
+    _write_raw(still, tmp_path / "still.npz")
+    back = read_trials(tmp_path / "still.npz", model2d)
+    assert torch.equal(back["mask"].sum(-1), trials2d["mask"].sum(-1))

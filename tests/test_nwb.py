@@ -32,10 +32,10 @@ def test_non_integer_trial_numbers_are_refused_before_writing(tmp_path):
     assert back["trial"][:, 0].tolist() == [3, 5, 7]
 
 
-def _lab_nwb(path, columns, centimetres=False, between_trials=False, without=()):
+def _lab_nwb(path, columns, centimetres=False, between_trials=False, without=(), short=()):
     """An NWB file laid out as the schema says, written the way a lab's rig might: positions
-    in cm declared by NWB's own ``conversion``, samples through the gaps between trials, or
-    a series not exported."""
+    in cm declared by NWB's own ``conversion``, samples through the gaps between trials, a
+    series not exported, or one a sample short on its own clock."""
     import datetime
     import uuid
 
@@ -75,7 +75,9 @@ def _lab_nwb(path, columns, centimetres=False, between_trials=False, without=())
     behavior.add(CompassDirection(name="CompassDirection", spatial_series=[heading]))
     for container, names in (("state", ("v", "w")), ("action", ("a_v", "a_w"))):
         series = [
-            TimeSeries(name=n, data=data[n], timestamps=position, unit="SI")
+            TimeSeries(name=n, data=data[n][:-1], timestamps=stamps[:-1], unit="SI")
+            if n in short
+            else TimeSeries(name=n, data=data[n], timestamps=position, unit="SI")
             for n in names
             if n not in without
         ]
@@ -107,3 +109,6 @@ def test_a_rigs_nwb_file_is_read_as_nwb_means_it(tmp_path):
     _lab_nwb(tmp_path / "no_v.nwb", columns, without=("v",))
     with pytest.raises(KeyError, match="missing the series 'v'; expected it in 'state'"):
         read_trials(tmp_path / "no_v.nwb", model)
+    _lab_nwb(tmp_path / "short.nwb", columns, short=("a_v",))
+    with pytest.raises(ValueError, match=r"series 'a_v' has \d+ values but 'position' has \d+"):
+        read_trials(tmp_path / "short.nwb", model)

@@ -43,6 +43,7 @@ from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dic
 from irc_torchrl.data.files import write_json, write_npz
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
+from irc_torchrl.data.units import UNITS
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
@@ -132,7 +133,7 @@ def simulate_recordings(
         bar.close()
         simulate_s = time.perf_counter() - start
         agents = []
-        earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate")]
+        earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate") or []]
         # a summary of an earlier run would claim the true θ of recordings it did not write
         (out / "summary.json").unlink(missing_ok=True)
         for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
@@ -166,14 +167,15 @@ def simulate_recordings(
     return summary
 
 
-def _earlier_agents(out: Path, command: str) -> list[dict]:
-    """The ``agents`` of the ``summary.json`` an earlier ``irc <command>`` left in ``out``."""
+def _earlier_agents(out: Path, command: str) -> list[dict] | None:
+    """The ``agents`` of the ``summary.json`` an earlier ``irc <command>`` left in ``out``
+    (``None`` where no such run did: then nothing there is that run's to remove)."""
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (OSError, ValueError):
-        return []
+        return None
     if not isinstance(summary, dict) or summary.get("command") != command:
-        return []
+        return None
     agents = summary.get("agents")
     return [a for a in agents if isinstance(a, dict)] if isinstance(agents, list) else []
 
@@ -225,8 +227,11 @@ def _units(space: ThetaSpace, declared: Mapping[str, str] | None = None) -> dict
 
 
 def _in_metres(unit: str, declared: Mapping[str, str] | None) -> str:
-    """``unit`` with the task's "distance" named "m" where recorded units were declared."""
-    return unit.replace("distance", "m") if declared else unit
+    """``unit`` with the task's "distance" named "m" where a recorded distance or speed unit
+    was declared (and converted to the metre)."""
+    lengths = {**UNITS["distance"], **UNITS["distance/s"]}
+    metres = any(u in lengths for u in (declared or {}).values())
+    return unit.replace("distance", "m") if metres else unit
 
 
 def _simulated_truth(path: Path, space: ThetaSpace) -> torch.Tensor | None:
@@ -369,23 +374,21 @@ def fit_recordings(
         summary["methods"] = by_method
     summary["state_names"] = list(model.state_names)
     summary["state_units"] = [_in_metres(unit, config.units) for unit in model.state_units]
-    earlier = [agent.get("label") for agent in _earlier_agents(out, "fit")]
+    earlier = _earlier_agents(out, "fit")
     _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs)
     write_json(out / "summary.json", summary)
     written = {path.name for path in report_run(out)}
-    # an earlier fit's figures this one did not draw again (other recordings, no truth now)
-    figures = [
-        f"{kind}{part}.png"
-        for kind in ("recovery", "estimates")
-        for part in ("", "_map", "_marginal")
-    ]
-    figures += [
-        f"{label}_beliefs_{view}.png"
-        for label in earlier
-        if isinstance(label, str)
-        for view in ("overhead", "time")
-    ]
-    _remove_stale(out, figures, written)
+    if earlier is not None:  # an earlier fit's figures this one did not draw again
+        labels = [agent.get("label") for agent in earlier]
+        kinds, methods = ("recovery", "estimates"), ("", "_map", "_marginal")
+        figures = [f"{kind}{method}.png" for kind in kinds for method in methods]
+        figures += [
+            f"{label}_beliefs_{view}.png"
+            for label in labels
+            if isinstance(label, str)
+            for view in ("overhead", "time")
+        ]
+        _remove_stale(out, figures, written)
     return summary
 
 

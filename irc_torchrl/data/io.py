@@ -111,11 +111,7 @@ def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> 
     and ``irc fit`` read it: several agents are refused, not pooled into one.
     """
     path = Path(path)
-    if trials.ndim == 3 and trials.shape[0] != 1:
-        raise ValueError(
-            f"trials: holds {trials.shape[0]} agents ([n_agents, n_trials, T]); a recording "
-            "is one agent's: write each with write_trials(trials[i], ...)"
-        )
+    _one_agent(trials, "trials")
     trials = validate_trials(trials, model).reshape(-1, trials.shape[-1])
     if path.suffix == "":
         held = trials.select(*TRIAL_KEYS).clone()
@@ -129,6 +125,15 @@ def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> 
     with atomic_path(path, suffix=f".tmp{path.suffix}") as tmp:
         writer(columns, tmp, model)
     return path
+
+
+def _one_agent(trials: TensorDictBase, field: str) -> None:
+    """Refuse held trials of several agents ``[n_agents, n_trials, T]``: a recording is one's."""
+    if trials.ndim == 3 and trials.shape[0] != 1:
+        raise ValueError(
+            f"{field}: holds the trials of {trials.shape[0]} agents ([agent, trial, step]); a "
+            "recording is one agent's: write each with write_trials(trials[i], ...)"
+        )
 
 
 def trials_to_columns(
@@ -263,9 +268,13 @@ def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str)
 
 def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
     names = list(columns)
+    # integers as they are, float64 (trial numbers like 20240501.001) by the shortest text that
+    # reads back the same, float32 by the 9 digits that do
     cells = [
         [str(v) for v in col.tolist()]
         if np.issubdtype(col.dtype, np.integer)
+        else [repr(v) for v in col.tolist()]
+        if col.dtype == np.float64
         else [f"{v:.9g}" for v in col.tolist()]
         for col in columns.values()
     ]
@@ -299,11 +308,7 @@ def _read_memmap(path: Path, model: TaskModel, time_column: str, trial_column: s
         trials = validate_trials(trials, model)
     except (ValueError, TypeError) as err:
         raise ValueError(f"{path}: {err}") from None
-    if trials.shape[0] > 1:  # e.g. irc recover's trials/: pooled, they would read as one agent
-        raise ValueError(
-            f"{path}: holds the trials of {trials.shape[0]} agents ([agent, trial, step]); a "
-            "recording is one agent's: write each with write_trials(trials[i], ...)"
-        )
+    _one_agent(trials, str(path))  # e.g. irc recover's trials/: pooled, they'd read as one agent
     return trials_to_columns(trials.reshape(-1, trials.shape[-1]), model, time_column, trial_column)
 
 

@@ -154,6 +154,11 @@ def read_nwb(
                     "processing module 'behavior' (see docs/trajectory_schema.md)"
                 ) from None
             table[name] = _values(series)
+            if len(table[name]) != len(stamps):
+                raise ValueError(
+                    f"{path}: series {name!r} has {len(table[name])} values but 'position' "
+                    f"has {len(stamps)} timestamps; expected every series on one clock"
+                )
         if nwb.trials is None:
             raise KeyError(f"{path}: missing the trials table; expected one row per trial")
         trials = nwb.trials.to_dataframe()

@@ -22,6 +22,7 @@ from irc_torchrl.envs.model import TaskModel, action_in_spec
 __all__ = [
     "ABSURD",
     "THETA_PREFIX",
+    "KINEMATIC_RATIO",
     "check_columns",
     "check_kinematics",
     "check_trial",
@@ -248,33 +249,66 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
 def check_kinematics(
     trials: list[tuple[int | float, Trial]], model: TaskModel, source: str, time_column: str
 ) -> None:
-    """Refuse a recording whose positions (angles) do not move as its velocity column says.
+    """Refuse a recording whose positions (angles) do not move as the task's transition says.
 
     Each column is checked alone against the θ space's reach, so a velocity declared in the
-    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes; here the whole
-    recording's travel, ``Σ |Δ position|``, is set against ``Σ |velocity| Δt`` of the one
-    velocity column of that unit, and they must agree within :data:`KINEMATIC_RATIO`.
+    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes. Here each step's
+    recorded change of the distance (angle) fields is regressed on the change the transition
+    predicts from the recorded state and action (under the world's θ): a slope beyond
+    :data:`KINEMATIC_RATIO` either way, many standard errors from 1, is a unit mistake. A
+    recording that hardly moves (its predicted changes all zero) or whose tracker jitters as
+    much as it moves leaves the slope unsure, and is let through.
     """
-    units = dict(zip(model.state_names, model.state_units, strict=True))
-    for moving, rate_unit in (("distance", "distance/s"), ("rad", "rad/s")):
-        moved = [n for n, u in units.items() if u == moving]
-        rates = [n for n, u in units.items() if u == rate_unit]
-        if not moved or len(rates) != 1:
+    space, names = model.theta_space, model.state_names
+    default = space.default(torch.float64).numpy()
+    state, action, theta, after = [], [], [], []
+    for _, trial in trials:
+        rows = np.stack([np.asarray(trial[n], np.float64) for n in names], -1)
+        acts = np.stack([np.asarray(trial[n], np.float64) for n in model.action_names], -1)
+        given = [THETA_PREFIX + n in trial for n in space.names]
+        world = np.stack(
+            [
+                np.asarray(trial[THETA_PREFIX + n], np.float64) if known else np.full(len(rows), d)
+                for n, d, known in zip(space.names, default, given, strict=True)
+            ],
+            -1,
+        )
+        state.append(rows[:-1])
+        action.append(acts[:-1])
+        theta.append(world[:-1])
+        after.append(rows[1:])
+    state_t = torch.from_numpy(np.concatenate(state))
+    action_t = torch.from_numpy(np.concatenate(action))
+    if isinstance(model.action_spec, Categorical):
+        action_t = action_t[..., 0].long()
+    predicted = model.transition(state_t, action_t, torch.from_numpy(np.concatenate(theta)))
+    recorded = np.concatenate(after) - state_t.numpy()
+    predicted = predicted.numpy() - state_t.numpy()
+    units = dict(zip(names, model.state_units, strict=True))
+    for kind in ("rad", "distance"):  # a heading's mistake also bends the predicted path
+        columns = [i for i, n in enumerate(names) if units[n] == kind]
+        if not columns:
             continue
-        travelled = said = 0.0
-        for _, trial in trials:
-            steps = np.diff(np.asarray(trial[time_column], dtype=np.float64))
-            place = np.stack([np.asarray(trial[n], dtype=np.float64) for n in moved], -1)
-            travelled += float(np.linalg.norm(np.diff(place, axis=0), axis=-1).sum())
-            said += float((np.abs(np.asarray(trial[rates[0]], np.float64)[:-1]) * steps).sum())
-        if max(travelled, said) == 0:
+        x, y = predicted[:, columns].reshape(-1), recorded[:, columns].reshape(-1)
+        spread = float(x @ x)
+        if spread == 0 or len(x) < 3:
             continue
-        ratio = travelled / said if said > 0 else math.inf
-        if not 1 / KINEMATIC_RATIO <= ratio <= KINEMATIC_RATIO:
-            fields = "/".join(repr(n) for n in moved)
-            raise ValueError(
-                f"{source}: field {rates[0]!r}: {fields} move {ratio:.3g}× as far as "
-                f"{rates[0]!r} says ({travelled:.6g} against {said:.6g} {moving} over the "
-                f"recording); expected about 1: are {fields} and {rates[0]!r} in the units "
-                f"declared? (units.{rates[0]}=... on the command line)"
-            )
+        slope = float(x @ y) / spread
+        error = math.sqrt(float(((y - slope * x) ** 2).sum()) / (len(x) - 1) / spread)
+        if 1 / KINEMATIC_RATIO <= slope <= KINEMATIC_RATIO or abs(slope - 1) < 5 * error:
+            continue
+        fields = "/".join(repr(names[i]) for i in columns)
+        drivers = [n for n in names if units[n] == f"{kind}/s"]
+        cause = f"{'/'.join(map(repr, drivers))}" if drivers else "the actions and the world's θ"
+        angles = [repr(n) for n in names if units[n] == "rad"]
+        convention = (
+            f"; is {'/'.join(angles)} measured as the task's, from the x axis counter-clockwise?"
+            if kind == "distance" and angles
+            else ""
+        )
+        raise ValueError(
+            f"{source}: field(s) {fields}: each step moves {slope:.3g}× as far as the task's "
+            f"transition predicts from {cause} (a slope of ±{error:.2g} over the recording); "
+            f"expected about 1: are {fields} and {cause} in the units declared? "
+            f"(units.<column>=... on the command line){convention}"
+        )
