@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import pickle
 import zipfile
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,11 @@ FORMAT = "irc_torchrl.checkpoint/1"
 PACKAGED = Path(__file__).resolve().parent / "checkpoints"
 #: the entries :func:`save_checkpoint` writes beside the caller's state
 HEADER = ("format", "task", "version", "theta_space", "config")
+#: the entries a caller's state may not use: the header's, and the ``path`` loading adds
+RESERVED = (*HEADER, "path")
+#: what ``torch.load(weights_only=True)`` reads back: containers and scalars, beside tensors
+_CONTAINERS = (dict, OrderedDict, list, tuple)
+_SCALARS = (type(None), bool, int, float, str)
 
 
 def _major(version: str) -> str:
@@ -62,7 +68,14 @@ def save_checkpoint(
         theta_space: the θ space the networks were trained over.
         config: the resolved config, as a plain dict.
         state: state dicts, counters and RNG states (plain data only).
+
+    Raises:
+        ValueError: before writing anything, where the arguments would make a file that
+            :func:`load_checkpoint` refuses: a ``state`` entry named like a header entry
+            (:data:`RESERVED`), or anything but plain data (tensors, dicts, lists, tuples,
+            strings, numbers, bools, None) in ``config`` or ``state``.
     """
+    _check_save_arguments(task, theta_space, config, state)
     payload = {
         "format": FORMAT,
         "task": task,
@@ -74,6 +87,53 @@ def save_checkpoint(
     with atomic_path(path, suffix=".pt") as tmp:
         torch.save(payload, tmp)
     return Path(path)
+
+
+def _check_save_arguments(
+    task: str, theta_space: ThetaSpace, config: Mapping[str, Any], state: Mapping[str, Any]
+) -> None:
+    """Refuse what :func:`load_checkpoint` would refuse to read back, or read back as
+    something else (a state entry ``task`` would overwrite the header's)."""
+    if not isinstance(task, str) or not task:
+        raise ValueError(f"save_checkpoint: task must be a non-empty string, got {task!r:.80}")
+    if not isinstance(theta_space, ThetaSpace):
+        raise ValueError(
+            f"save_checkpoint: theta_space must be a ThetaSpace, got {type(theta_space).__name__}"
+        )
+    for name, value in (("config", config), ("state", state)):
+        if not isinstance(value, Mapping):
+            raise ValueError(
+                f"save_checkpoint: {name} must be a mapping, got {type(value).__name__}"
+            )
+    clash = [key for key in RESERVED if key in state]
+    if clash:
+        raise ValueError(
+            f"save_checkpoint: state entries {clash} are reserved for the checkpoint's header "
+            f"{list(RESERVED)}; rename them"
+        )
+    for name, value in (("config", config), ("state", state)):
+        found = _not_plain(dict(value), name)
+        if found is not None:
+            raise ValueError(
+                f"save_checkpoint: {found}; expected plain data (tensors, dicts, lists, "
+                "tuples, strings, numbers, bools, None), which a weights-only load reads back"
+            )
+
+
+def _not_plain(value: Any, name: str) -> str | None:
+    """The first entry below ``value`` that a weights-only load refuses, as ``a/b is a T``."""
+    if isinstance(value, torch.Tensor) or type(value) in _SCALARS:
+        return None
+    if type(value) not in _CONTAINERS:
+        return f"{name} is a {type(value).__module__}.{type(value).__qualname__}"
+    items = value.items() if isinstance(value, dict) else enumerate(value)
+    for key, item in items:
+        if type(key) not in _SCALARS:
+            return f"{name} has a key {key!r:.40} of type {type(key).__name__}"
+        found = _not_plain(item, f"{name}/{key}")
+        if found is not None:
+            return found
+    return None
 
 
 def resolve_checkpoint(source: str | Path) -> Path:
@@ -106,15 +166,22 @@ def load_checkpoint(
         source: a file path, or the name of a packaged checkpoint (``"firefly2d"``).
         task: the task the caller expects; ``None`` accepts any.
         theta_space: the θ space the caller expects; ``None`` accepts any.
-        required: the state entries the caller reads (besides :data:`HEADER`'s).
+        required: the state entries the caller reads (besides :data:`HEADER`'s); a string
+            is one entry's name.
 
     Raises:
         FileNotFoundError: no such file or packaged name.
         ValueError: the file is not a readable checkpoint (truncated, garbage, failing its
             CRCs, or holding pickled objects other than plain data), lacks a required entry,
-            holds a non-finite tensor, or its task, θ space or library major version does
-            not match.
+            holds a malformed θ space or a non-finite tensor, or its task, θ space or library
+            major version does not match.
     """
+    if theta_space is not None and not isinstance(theta_space, ThetaSpace):
+        raise ValueError(
+            f"load_checkpoint: theta_space must be a ThetaSpace or None, got "
+            f"{type(theta_space).__name__}"
+        )
+    required = (required,) if isinstance(required, str) else tuple(required)
     path = resolve_checkpoint(source)
     data = _read(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
@@ -135,12 +202,10 @@ def load_checkpoint(
     _require(path, data, required)
     if task is not None and data["task"] != task:
         raise ValueError(f"checkpoint {path}: task is {data['task']!r}, expected {task!r}")
-    if theta_space is not None:
-        stored = ThetaSpace.from_config(data["theta_space"])
-        if stored != theta_space:
-            raise ValueError(
-                f"checkpoint {path}: theta_space is {stored!r}, expected {theta_space!r}"
-            )
+    # parsed even when any θ space is accepted: callers build their models from it
+    stored = ThetaSpace.from_config(data["theta_space"], f"checkpoint {path}: entry theta_space")
+    if theta_space is not None and stored != theta_space:
+        raise ValueError(f"checkpoint {path}: theta_space is {stored!r}, expected {theta_space!r}")
     entry = _non_finite(data)
     if entry is not None:
         raise ValueError(

@@ -23,6 +23,7 @@ from irc_torchrl.algorithms.ensemble import (
 )
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
+from irc_torchrl.checks import SEED_LIMIT, check_fields
 from irc_torchrl.checks import positive as _positive
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
 from irc_torchrl.modules.likelihood import LAPSE_MAX
@@ -47,10 +48,6 @@ __all__ = [
     "config_to_dict",
 ]
 
-#: seeds are integers in [0, SEED_LIMIT): torch's generators take 64 bits, and the seeds
-#: derived from one (``seed + 1000 * k``) must fit too
-SEED_LIMIT = 2**63
-
 
 @dataclass
 class AgentsConfig:
@@ -65,6 +62,7 @@ class AgentsConfig:
 
     def validate(self) -> AgentsConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        check_fields(self, "agents.")
         _positive(
             **{"agents.n_agents": self.n_agents, "agents.n_trials": self.n_trials},
             **{"agents.temperature": self.temperature},
@@ -92,6 +90,7 @@ class FitConfig:
 
     def validate(self) -> FitConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        check_fields(self, "fit.")
         _positive(
             **{"fit.workers": self.workers, "fit.n_screen": self.n_screen},
             **{"fit.n_starts": self.n_starts, "fit.max_iter": self.max_iter},
@@ -118,6 +117,7 @@ class Firefly1DConfig:
 
     def validate(self) -> Firefly1DConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        check_fields(self)
         if self.task != "firefly1d":
             raise ValueError(f"config: task must be 'firefly1d', got {self.task!r}")
         _positive(threads=self.threads)
@@ -147,6 +147,7 @@ class SimulateConfig:
 
     def validate(self) -> SimulateConfig:
         """Return ``self`` if every number is usable, else raise a one-line error naming it."""
+        check_fields(self)
         _positive(
             n_agents=self.n_agents,
             n_trials=self.n_trials,
@@ -213,6 +214,7 @@ class RecordingFitConfig:
 
     def validate(self) -> RecordingFitConfig:
         """Return ``self`` if every number is usable, else raise a one-line error naming it."""
+        check_fields(self)
         _positive(
             n_screen=self.n_screen,
             n_starts=self.n_starts,
@@ -376,7 +378,6 @@ def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> A
         if not sep:
             raise ValueError(f"config: override {item!r} must look like key=value")
         _set(config, key.strip(), _yaml(value, f"override {item!r}"), config)
-    _check_seeds(config)
     return config
 
 
@@ -389,16 +390,6 @@ def _yaml(text: str, source: str) -> Any:
         mark = getattr(error, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         raise ValueError(f"config: {source} is not valid YAML: {problem}{where}") from None
-
-
-def _check_seeds(config: Any, prefix: str = "") -> None:
-    """Every ``seed`` field below ``config`` is an integer in [0, :data:`SEED_LIMIT`)."""
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        if dataclasses.is_dataclass(value):
-            _check_seeds(value, f"{prefix}{f.name}.")
-        elif f.name == "seed" and not 0 <= value < SEED_LIMIT:
-            raise ValueError(f"config: {prefix}seed must be an integer in [0, 2**63), got {value}")
 
 
 def load_recovery2d_config(

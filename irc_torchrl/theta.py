@@ -8,8 +8,10 @@ TorchRL's spec, and says which parameters are free and which are fixed.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, fields, replace
+from numbers import Integral, Real
 
 import torch
 from torchrl.data import Bounded
@@ -29,6 +31,22 @@ class Parameter:
     doc: str = ""
 
     def __post_init__(self) -> None:
+        """Store the bounds and default as floats, refusing what would make θ NaN: a name
+        that is not a string, a bound that is not a finite real number, an empty range."""
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"parameter name: expected a non-empty string, got {self.name!r}")
+        for key in ("unit", "doc"):
+            if not isinstance(getattr(self, key), str):
+                raise ValueError(
+                    f"parameter {self.name!r}: {key} must be a string, got {getattr(self, key)!r}"
+                )
+        for key in ("low", "high", "default"):
+            value = _real(f"parameter {self.name!r}: {key}", getattr(self, key))
+            if not math.isfinite(value):
+                raise ValueError(
+                    f"parameter {self.name!r}: {key} must be a finite number, got {value}"
+                )
+            object.__setattr__(self, key, value)  # frozen: set once, here
         if not self.low < self.high:
             raise ValueError(
                 f"parameter {self.name!r}: expected low < high, got [{self.low}, {self.high}]"
@@ -58,17 +76,31 @@ class ThetaSpace:
     def __init__(
         self, parameters: Sequence[Parameter], fixed: Mapping[str, float] | None = None
     ) -> None:
+        parameters = tuple(parameters)
+        if not parameters:
+            raise ValueError("ThetaSpace: expected at least one Parameter, got none")
+        for p in parameters:
+            if not isinstance(p, Parameter):
+                raise ValueError(f"ThetaSpace: expected Parameter entries, got {p!r:.80}")
         names = [p.name for p in parameters]
         if len(set(names)) != len(names):
             raise ValueError(f"ThetaSpace: parameter names must be unique, got {names}")
-        self.parameters = tuple(parameters)
+        self.parameters = parameters
         self._index = {name: i for i, name in enumerate(names)}
-        fixed = dict(fixed or {})
-        for name, value in fixed.items():
-            p = self[name]
-            if not p.low <= value <= p.high:
-                raise ValueError(f"fixed {name}={value} outside its range [{p.low}, {p.high}]")
-        self.fixed = fixed
+        if not isinstance(fixed or {}, Mapping):
+            raise ValueError(
+                f"ThetaSpace: fixed must be a {{name: value}} mapping, got {fixed!r:.80}"
+            )
+        self.fixed = {name: self._fixed_value(name, value) for name, value in (fixed or {}).items()}
+
+    def _fixed_value(self, name: str, value: object) -> float:
+        """``value`` as a plain float within ``name``'s range (a tensor or numpy scalar would
+        not survive ``json.dumps(to_config())``)."""
+        p = self[name]
+        value = _real(f"fixed {name}", value)
+        if not p.low <= value <= p.high:
+            raise ValueError(f"fixed {name}={value} outside its range [{p.low}, {p.high}]")
+        return value
 
     # --- description -----------------------------------------------------------------------
     def __getitem__(self, name: str) -> Parameter:
@@ -127,7 +159,8 @@ class ThetaSpace:
 
     # --- free and fixed --------------------------------------------------------------------
     def fix(self, **values: float) -> ThetaSpace:
-        """A copy with the named parameters held at the given values."""
+        """A copy with the named parameters held at the given values (real numbers, stored as
+        floats; a 0-d tensor or numpy scalar is converted)."""
         for name in values:
             self[name]
         return ThetaSpace(self.parameters, {**self.fixed, **values})
@@ -142,6 +175,7 @@ class ThetaSpace:
     def with_range(self, name: str, low: float, high: float) -> ThetaSpace:
         """A copy whose parameter ``name`` has the prior range ``[low, high]``."""
         p = self[name]
+        low, high = _real(f"{name}: low", low), _real(f"{name}: high", high)
         new = replace(p, low=low, high=high, default=min(max(p.default, low), high))
         params = [new if q.name == name else q for q in self.parameters]
         return ThetaSpace(params, self.fixed)
@@ -149,15 +183,7 @@ class ThetaSpace:
     # --- validation ------------------------------------------------------------------------
     def validate(self, theta: torch.Tensor, field: str = "theta") -> torch.Tensor:
         """Return ``theta`` if it is a finite ``[..., dim]`` tensor within bounds, else raise."""
-        if not isinstance(theta, torch.Tensor):
-            raise TypeError(
-                f"{field}: expected a tensor of shape [..., {self.dim}], got {type(theta).__name__}"
-            )
-        if theta.ndim == 0 or theta.shape[-1] != self.dim:
-            raise ValueError(
-                f"{field}: expected shape [..., {self.dim}] ({', '.join(self.names)}), "
-                f"got {list(theta.shape)}"
-            )
+        self._check_shape(theta, field)
         if not theta.is_floating_point():
             raise TypeError(f"{field}: expected a floating-point tensor, got {theta.dtype}")
         bad = self.outside(theta)
@@ -169,6 +195,18 @@ class ThetaSpace:
                 f"{field}: {p.name}={value:.6g} is outside its space [{p.low}, {p.high}]"
             )
         return theta
+
+    def _check_shape(self, theta: torch.Tensor, field: str) -> None:
+        """Refuse anything but a tensor whose last dimension holds one entry per parameter."""
+        if not isinstance(theta, torch.Tensor):
+            raise TypeError(
+                f"{field}: expected a tensor of shape [..., {self.dim}], got {type(theta).__name__}"
+            )
+        if theta.ndim == 0 or theta.shape[-1] != self.dim:
+            raise ValueError(
+                f"{field}: expected shape [..., {self.dim}] ({', '.join(self.names)}), "
+                f"got {list(theta.shape)}"
+            )
 
     def outside(self, theta: torch.Tensor) -> torch.Tensor:
         """Which components of ``theta [..., dim]`` are not finite or lie outside their bounds
@@ -203,22 +241,23 @@ class ThetaSpace:
     # --- prior and spec --------------------------------------------------------------------
     def sample(
         self,
-        shape: Sequence[int] | torch.Size = (),
+        shape: int | Sequence[int] | torch.Size = (),
         generator: torch.Generator | None = None,
         dtype: torch.dtype = torch.float32,
         device=None,
     ) -> torch.Tensor:
         """Draw θ from the uniform prior; fixed parameters take their fixed values (on
-        ``device``, else the generator's, else the CPU)."""
+        ``device``, else the generator's, else the CPU). An int ``shape`` is a 1-D shape."""
+        shape = _shape("sample: shape", shape)
         device = device if device is not None else (generator.device if generator else "cpu")
         u = torch.rand(*shape, self.dim, generator=generator, dtype=dtype, device=device)
         theta = self.low(dtype, device) + u * (self.high(dtype, device) - self.low(dtype, device))
         mask = self.free_mask.to(device)
         return torch.where(mask, theta, self.default(dtype, device))
 
-    def spec(self, batch_shape: Sequence[int] | torch.Size = (), device=None) -> Bounded:
-        """TorchRL's spec of θ with the given leading batch dimensions."""
-        shape = torch.Size([*batch_shape, self.dim])
+    def spec(self, batch_shape: int | Sequence[int] | torch.Size = (), device=None) -> Bounded:
+        """TorchRL's spec of θ with the given leading batch dimensions (an int is 1-D)."""
+        shape = torch.Size([*_shape("spec: batch_shape", batch_shape), self.dim])
         return Bounded(
             low=self.low(device=device).expand(shape).clone(),
             high=self.high(device=device).expand(shape).clone(),
@@ -229,7 +268,9 @@ class ThetaSpace:
 
     # --- dictionaries and serialisation ----------------------------------------------------
     def to_dict(self, theta: torch.Tensor) -> dict[str, float] | dict[str, torch.Tensor]:
-        """``{name: value}``: floats for a single θ, tensors for a batch."""
+        """``{name: value}``: floats for a single θ, tensors for a batch. A last dimension
+        other than :attr:`dim` is refused, not truncated."""
+        self._check_shape(theta, "to_dict: theta")
         if theta.ndim == 1:
             return {n: float(theta[i]) for i, n in enumerate(self.names)}
         return {n: theta[..., i] for i, n in enumerate(self.names)}
@@ -237,14 +278,22 @@ class ThetaSpace:
     def from_dict(
         self, values: Mapping[str, float], base: torch.Tensor | None = None, field: str = "theta"
     ) -> torch.Tensor:
-        """θ with the named values, the rest from ``base`` (default: the defaults); validated."""
+        """θ with the named values, the rest from ``base`` (default: the defaults); validated.
+
+        Each value must be a real number (a 0-d tensor or numpy scalar counts; a string or a
+        bool does not): ``float("1.3")`` would hide a config typed as text.
+        """
+        if not isinstance(values, Mapping):
+            raise ValueError(f"{field}: expected a {{name: number}} mapping, got {values!r:.80}")
+        if base is not None:
+            self._check_shape(base, f"{field}: base")
         theta = (self.default(torch.float64) if base is None else base.to(torch.float64)).clone()
         for name, value in values.items():
             if name not in self._index:
                 raise KeyError(
                     f"{field}: unknown θ parameter {name!r}; valid names: {', '.join(self.names)}"
                 )
-            theta[..., self._index[name]] = float(value)
+            theta[..., self._index[name]] = _real(f"{field}: {name}", value)
         return self.validate(theta.float(), field)
 
     def to_config(self) -> dict:
@@ -258,6 +307,56 @@ class ThetaSpace:
         }
 
     @classmethod
-    def from_config(cls, config: Mapping) -> ThetaSpace:
-        params = [Parameter(**{k: v for k, v in p.items()}) for p in config["parameters"]]
-        return cls(params, config.get("fixed", {}))
+    def from_config(cls, config: Mapping, field: str = "theta_space") -> ThetaSpace:
+        """The θ space :meth:`to_config` described. A malformed description (a checkpoint's,
+        say) is a one-line ValueError naming ``field``, not a KeyError or TypeError."""
+        form = "{'parameters': [{name, low, high, default, ...}], 'fixed': {name: value}}"
+        if not isinstance(config, Mapping) or not isinstance(config.get("parameters"), list):
+            raise ValueError(f"{field}: expected {form}, got {config!r:.80}")
+        if not isinstance(config.get("fixed", {}), Mapping):
+            raise ValueError(
+                f"{field}: fixed: expected {{name: value}}, got {config['fixed']!r:.80}"
+            )
+        try:
+            params = [_parameter_from_config(p) for p in config["parameters"]]
+            return cls(params, config.get("fixed", {}))
+        except (KeyError, TypeError, ValueError) as error:
+            message = str(error.args[0]) if error.args else type(error).__name__
+            raise ValueError(f"{field}: {message}") from None
+
+
+def _parameter_from_config(entry: object) -> Parameter:
+    """One :class:`Parameter` from its :meth:`ThetaSpace.to_config` entry, refusing missing
+    or unknown keys by name (``Parameter(**entry)`` would raise a bare TypeError)."""
+    names = [f.name for f in fields(Parameter)]
+    if not isinstance(entry, Mapping):
+        raise ValueError(f"parameter entry: expected a mapping of {names}, got {entry!r:.80}")
+    problems = [f"unknown key {k!r}" for k in entry if k not in names]
+    problems += [f"missing key {k!r}" for k in ("name", "low", "high", "default") if k not in entry]
+    if problems:
+        raise ValueError(
+            f"parameter entry {entry.get('name')!r}: {', '.join(problems)}; expected the keys "
+            f"{names[:4]}, optionally {names[4:]}"
+        )
+    return Parameter(**entry)
+
+
+def _real(field: str, value: object) -> float:
+    """``value`` as a float if it is a real number (a 0-d tensor or numpy scalar counts), else
+    a one-line error naming ``field``. A bool is not a number here, nor a numeric string."""
+    if getattr(value, "shape", None) == () and hasattr(value, "item"):
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise ValueError(f"{field}: expected a real number, got {value!r:.80}")
+    return float(value)
+
+
+def _shape(field: str, shape: int | Iterable[int]) -> tuple[int, ...]:
+    """``shape`` as a tuple of sizes ≥ 0; an int is a 1-D shape."""
+    sizes = (shape,) if isinstance(shape, Integral) else shape
+    if not isinstance(sizes, Iterable) or isinstance(sizes, (str, torch.Tensor)):
+        raise ValueError(f"{field}: expected an int or a sequence of ints, got {shape!r:.80}")
+    sizes = tuple(sizes)
+    if not all(isinstance(n, Integral) and not isinstance(n, bool) and n >= 0 for n in sizes):
+        raise ValueError(f"{field}: expected sizes that are integers ≥ 0, got {shape!r:.80}")
+    return tuple(int(n) for n in sizes)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import zipfile
 
+import numpy as np
 import pytest
 import torch
 
@@ -18,6 +19,8 @@ from irc_torchrl.algorithms.ensemble import (
 from irc_torchrl.checkpoint import load_checkpoint, save_checkpoint
 from irc_torchrl.config import load_firefly2d_config
 from irc_torchrl.envs.firefly2d import firefly2d_theta_space
+
+_SPACE = firefly2d_theta_space()
 
 TINY = [
     "ddpg.n_envs=32",
@@ -197,6 +200,70 @@ def test_a_config_or_theta_space_that_is_not_irc_trains_is_refused(tmp_path, tra
         ValueError, match=r"edited.pt: entry config is not a config irc train writes .*ddpg.gamma"
     ):
         load_ensemble_policy(_edited(trained, tmp_path, mangled))
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda ts: ts.pop("parameters"), r"expected \{'parameters'"),
+        (lambda ts: ts["parameters"][0].update(foo=1), "parameter entry 'g_v': unknown key 'foo'"),
+        (lambda ts: ts["parameters"][0].update(low="a"), "'g_v': low: expected a real"),
+        (lambda ts: ts.update(fixed={"zz": 1.0}), "unknown θ parameter 'zz'"),
+    ],
+)
+def test_a_malformed_theta_space_is_refused_naming_the_file(tmp_path, trained, edit, message):
+    """It raised KeyError 'parameters', TypeError or a comparison error from deep inside."""
+    path = _edited(trained, tmp_path, lambda p: edit(p["theta_space"]))
+    pattern = f"^checkpoint .*edited.pt: entry theta_space: (parameter )?{message}"
+    for load in (load_checkpoint, load_ensemble_policy, load_ensemble_critic):
+        with pytest.raises(ValueError, match=pattern):
+            load(path)
+
+
+@pytest.mark.parametrize(
+    "state, message",
+    [
+        ({"task": "other", "format": "x"}, r"state entries \['format', 'task'\] are reserved"),
+        ({"path": "x"}, r"state entries \['path'\] are reserved"),
+        ({"x": object()}, "state/x is a builtins.object"),
+        ({"rng": {"numpy": [np.float32(1.0)]}}, "state/rng/numpy/0 is a numpy.float32"),
+        ({"x": {frozenset(): 1}}, "state/x has a key frozenset"),
+    ],
+)
+def test_saving_refuses_what_loading_would_refuse(tmp_path, state, message):
+    """The state overwrote the header or held objects a weights-only load refuses: the file
+    was written, and refused (or read as another task's) later."""
+    with pytest.raises(ValueError, match=f"^save_checkpoint: {message}"):
+        save_checkpoint(
+            tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state=state
+        )
+    with pytest.raises(ValueError, match="^save_checkpoint: config/seed is a numpy.int64"):
+        save_checkpoint(
+            tmp_path / "c.pt",
+            task="firefly2d",
+            theta_space=_SPACE,
+            config={"seed": np.int64(1)},
+            state={},
+        )
+    assert list(tmp_path.iterdir()) == []  # refused before writing anything
+
+
+def test_saving_keeps_plain_state_and_refuses_bad_arguments(tmp_path):
+    state = {"w": torch.ones(2), "opt": {0: {"step": 1}}, "groups": [{"betas": (0.9, 0.99)}]}
+    path = save_checkpoint(
+        tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state=state
+    )
+    ckpt = load_checkpoint(path, task="firefly2d", theta_space=_SPACE, required="opt")
+    assert ckpt["opt"] == {0: {"step": 1}} and ckpt["groups"] == [{"betas": (0.9, 0.99)}]
+    with pytest.raises(ValueError, match="task must be a non-empty string"):
+        save_checkpoint(tmp_path / "d.pt", task=3, theta_space=_SPACE, config={}, state={})
+    with pytest.raises(ValueError, match="theta_space must be a ThetaSpace"):
+        save_checkpoint(tmp_path / "d.pt", task="firefly2d", theta_space={}, config={}, state={})
+    with pytest.raises(ValueError, match="state must be a mapping"):
+        save_checkpoint(
+            tmp_path / "d.pt", task="firefly2d", theta_space=_SPACE, config={}, state=[1]
+        )
+    assert not (tmp_path / "d.pt").exists()
 
 
 @pytest.mark.parametrize("entry", ["best_actor", "actor", "loss"])

@@ -575,3 +575,11 @@ def test_a_fit_of_a_recording_in_cm_reports_its_distances_in_metres(simulated, t
     assert s["units"]["goal_radius"] == "distance" and s["state_units"][0] == "distance"
     assert cm["state_units"][:2] == ["m", "m"] and cm["state_units"][3] == "m/s"
     assert cm["agents"][0]["theta_hat"] == pytest.approx(m["agents"][0]["theta_hat"], rel=1e-5)
+
+
+def test_a_recovery_refused_for_its_checkpoint_leaves_no_folder(tmp_path, capsys):
+    """``config.yaml`` was written before the checkpoint was read: a refused run left it."""
+    out = tmp_path / "recover"
+    argv = ["recover", "--out", str(out), "--quiet", f"checkpoint={tmp_path / 'none.pt'}"]
+    assert main(argv) == 2
+    assert "none.pt" in capsys.readouterr().err and not out.exists()

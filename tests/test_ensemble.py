@@ -272,7 +272,7 @@ def test_evaluation_refuses_bad_thetas_before_any_rollout(score):
     model = Firefly2DModel()
     policy = BeliefPursuit(model)
     default = model.theta_space.default()
-    with pytest.raises(ValueError, match=r"thetas: expected shape \[n, 9\], got \[9\]"):
+    with pytest.raises(ValueError, match=r"thetas: expected shape \[n ≥ 1, 9\], got \[9\]"):
         score(model, policy, default)
     outside = default.clone()
     outside[model.theta_space.index("g_v")] = 5.0

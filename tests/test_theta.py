@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -185,3 +186,98 @@ def test_construction_errors():
         Parameter("a", 0, 1, 2.0)
     with pytest.raises(ValueError, match="a=3"):
         ThetaSpace([Parameter("a", 0, 1, 0.5)], fixed={"a": 3})
+
+
+@pytest.mark.parametrize(
+    "low, high, default, message",
+    [
+        (-math.inf, math.inf, 0.0, "'a': low must be a finite number"),
+        (0.0, math.nan, 0.5, "'a': high must be a finite number"),
+        ("0", 1.0, 0.5, "'a': low: expected a real number, got '0'"),
+        (0.0, 1.0, None, "'a': default: expected a real number, got None"),
+        (0.0, 1.0, True, "'a': default: expected a real number, got True"),
+    ],
+)
+def test_parameter_refuses_bounds_that_are_not_finite_numbers(low, high, default, message):
+    """An infinite range made sample() return NaN; a string bound failed on comparison."""
+    with pytest.raises(ValueError, match=message):
+        Parameter("a", low, high, default)
+
+
+def test_parameter_stores_plain_floats():
+    p = Parameter("a", np.float32(0.0), torch.tensor(2.0), 1)
+    assert all(type(v) is float for v in (p.low, p.high, p.default))
+    json.dumps(ThetaSpace([p]).to_config())
+    with pytest.raises(ValueError, match="name"):
+        Parameter(3, 0.0, 1.0, 0.5)
+
+
+def test_to_dict_refuses_a_last_dimension_other_than_dim():
+    """Twelve entries for a 3-parameter space used to come back as the first three."""
+    space = make_space()
+    for theta in (torch.ones(12), torch.ones(4, 2), torch.tensor(1.0)):
+        with pytest.raises(ValueError, match=r"to_dict: theta: expected shape \[\.\.\., 3\]"):
+            space.to_dict(theta)
+
+
+@pytest.mark.parametrize("value", ["1.3", True, [1.3], None, torch.tensor([1.0, 1.2])])
+def test_from_dict_refuses_values_that_are_not_real_numbers(value):
+    with pytest.raises(ValueError, match="my_field: gain: expected a real number"):
+        make_space().from_dict({"gain": value}, field="my_field")
+
+
+def test_from_dict_accepts_numeric_scalars_and_refuses_a_malformed_base():
+    space = make_space()
+    for value in (1, np.float32(0.75), torch.tensor(0.75, dtype=torch.float64)):
+        assert space.from_dict({"gain": value})[0].item() == pytest.approx(float(value))
+    with pytest.raises(ValueError, match=r"theta: base: expected shape \[\.\.\., 3\]"):
+        space.from_dict({"gain": 1.0}, base=torch.zeros(2))
+    with pytest.raises(ValueError, match="mapping"):
+        space.from_dict([("gain", 1.0)])
+
+
+def test_fix_stores_plain_floats_and_refuses_non_numbers():
+    """A tensor stored raw made json.dumps(to_config()) fail long after fix()."""
+    space = make_space()
+    for value in (torch.tensor(0.75), np.float32(0.75), np.float64(0.75), 1):
+        fixed = space.fix(gain=value)
+        assert type(fixed.fixed["gain"]) is float
+        assert fixed.fixed["gain"] == pytest.approx(float(value))
+        json.dumps(fixed.to_config())
+    for value in ("0.75", True, torch.tensor([0.75, 0.8]), None):
+        with pytest.raises(ValueError, match="fixed gain: expected a real number"):
+            space.fix(gain=value)
+
+
+def test_empty_space_is_refused_and_an_int_shape_is_one_dimensional():
+    with pytest.raises(ValueError, match="at least one Parameter"):
+        ThetaSpace([])
+    with pytest.raises(ValueError, match="Parameter entries"):
+        ThetaSpace([{"name": "a", "low": 0, "high": 1, "default": 0.5}])
+    space = make_space()
+    assert space.sample(5).shape == (5, 3)
+    assert space.sample(torch.Size([2, 4])).shape == (2, 4, 3)
+    assert space.spec(4).shape == (4, 3)
+    for shape in ((-1,), (2.5,), "ab", True):
+        with pytest.raises(ValueError, match="sample: shape"):
+            space.sample(shape)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda c: c.pop("parameters"), r"expected \{'parameters'"),
+        (lambda c: c["parameters"][0].update(foo=1), "parameter entry 'gain': unknown key 'foo'"),
+        (lambda c: c["parameters"][0].pop("high"), "parameter entry 'gain': missing key 'high'"),
+        (lambda c: c["parameters"][0].update(low="a"), "'gain': low: expected a real"),
+        (lambda c: c["parameters"].append("gain"), "parameter entry: expected a mapping"),
+        (lambda c: c.update(fixed={"zz": 1.0}), "unknown θ parameter 'zz'"),
+        (lambda c: c.update(fixed={"gain": "1"}), "fixed gain: expected a real number"),
+        (lambda c: c.update(fixed=[1.0]), r"fixed: expected \{name: value\}"),
+    ],
+)
+def test_from_config_refuses_a_malformed_description_naming_the_field(edit, message):
+    config = make_space().to_config()
+    edit(config)
+    with pytest.raises(ValueError, match=f"^where: (parameter )?{message}"):
+        ThetaSpace.from_config(config, field="where")

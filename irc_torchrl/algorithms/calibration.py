@@ -73,6 +73,12 @@ def interval_pivots(space: ThetaSpace, theta_true: torch.Tensor, result: FitResu
     ``|pivot| ≤ Z95`` exactly where the interval covers ``theta_true`` (``[n, d]``). NaN
     where the fit has no interval (an infinite sd: the whole range, whatever a factor).
     """
+    theta_true = space.validate(theta_true, "theta_true")
+    if theta_true.shape != result.theta_hat.shape:
+        raise ValueError(
+            f"theta_true: expected one θ per fitted agent, {list(result.theta_hat.shape)}, "
+            f"got {list(theta_true.shape)}"
+        )
     free = space.free_mask.to(result.theta_hat.device)
 
     def unconstrained(theta: torch.Tensor) -> torch.Tensor:
@@ -310,6 +316,11 @@ def calibrate_intervals(
     count("n_datasets", n_datasets)
     _check_tail(tail)
     theta_generating = space.validate(theta_generating, "theta_generating")
+    if theta_generating.ndim != 2:
+        raise ValueError(
+            f"theta_generating: expected [n_agents, {space.dim}], "
+            f"got {list(theta_generating.shape)}"
+        )
     pivots: dict[str, list[torch.Tensor]] = {}
     for i in range(n_datasets):
         for method, result in refit(i).items():

@@ -39,8 +39,9 @@ from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueE
 import irc_torchrl
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
-from irc_torchrl.checks import count
+from irc_torchrl.checks import check_fields, count
 from irc_torchrl.checks import positive as check_positive
+from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
 from irc_torchrl.envs.firefly2d import Firefly2DEnv, Firefly2DModel, firefly2d_theta_space
@@ -212,6 +213,7 @@ class Firefly2DConfig:
 
     def validate(self) -> Firefly2DConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        check_fields(self)
         d, e = self.ddpg, self.evaluation
         if self.task != TASK:
             raise ValueError(f"config: task must be {TASK!r}, got {self.task!r}")
@@ -285,8 +287,14 @@ class Firefly2DConfig:
                 f"config: ddpg.n_envs={d.n_envs} must be a multiple of "
                 f"ddpg.collector_workers={d.collector_workers}"
             )
-        if not d.hidden or any(int(h) <= 0 for h in d.hidden):
+        widths = [isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in d.hidden]
+        if not d.hidden or not all(widths):
             raise ValueError(f"config: ddpg.hidden must list positive widths, got {d.hidden}")
+        if not 0 <= d.max_grad_norm < math.inf:
+            raise ValueError(
+                f"config: ddpg.max_grad_norm must be ≥ 0 and finite (0: no clipping), "
+                f"got {d.max_grad_norm}"
+            )
         if d.activation not in ACTIVATIONS:
             raise ValueError(
                 f"config: ddpg.activation must be one of {sorted(ACTIVATIONS)}, "
@@ -341,7 +349,8 @@ def theta_grid(space: ThetaSpace, n: int, seed: int) -> torch.Tensor:
     Each free parameter's range is cut into ``n`` equal strata and every stratum is used once,
     at a random point, in a random pairing with the other parameters' strata (fixed seed).
     """
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator().manual_seed(check_seed("seed", seed))
+    n = count("n", n)
     theta = space.default().expand(n, space.dim).clone()
     low, high = space.low(), space.high()
     for i, name in enumerate(space.names):
@@ -504,9 +513,10 @@ def _first_trials(
     steps belong to each row's first trial ``[N, T]`` (the timeout makes every row end)."""
     space = model.theta_space
     space.validate(thetas, "thetas")
-    if thetas.ndim != 2:
-        raise ValueError(f"thetas: expected shape [n, {space.dim}], got {list(thetas.shape)}")
+    if thetas.ndim != 2 or thetas.shape[0] == 0:
+        raise ValueError(f"thetas: expected shape [n ≥ 1, {space.dim}], got {list(thetas.shape)}")
     count("trials_per_theta", trials_per_theta)
+    check_seed("seed", seed)
     batch = thetas.shape[0] * trials_per_theta
     theta = thetas.float().repeat_interleave(trials_per_theta, 0)
     env = TransformedEnv(
@@ -1018,7 +1028,7 @@ def load_ensemble_policy(
     actor and the model (its action spec) are built on ``device``, whatever torch's default
     device is.
     """
-    with torch.device(device):
+    with torch.device(resolve_device(str(device))):
         config, model, ckpt = _load(source, ("best_actor",))
         actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
     _restore(actor, ckpt, "best_actor")
@@ -1065,6 +1075,12 @@ def critic_slices(
     target ahead-left at mid distance / at the agent's feet, with ``π(b)`` as ``pi_far`` /
     ``pi_near``. Distances are in the task's units.
     """
+    theta = model.theta_space.validate(theta, "theta")
+    if theta.shape != (model.theta_space.dim,):
+        raise ValueError(
+            f"theta: expected one θ [{model.theta_space.dim}], got {list(theta.shape)}"
+        )
+    n = count("n", n)
     far = float(model.target_distance[1])
     ahead = torch.linspace(-0.25 * far, far, n)
     aside = torch.linspace(-0.6 * far, 0.6 * far, n)

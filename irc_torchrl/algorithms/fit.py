@@ -26,6 +26,7 @@ from tensordict import TensorDictBase
 
 from irc_torchrl.algorithms.runtime import check_workers, flushing_denormals
 from irc_torchrl.checks import count, positive_number
+from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import (
     Z95,
@@ -208,7 +209,7 @@ def fit_theta(
     bounded = loss.bounded.to(device)
     if starts is not None:
         starts = space.validate(starts, "starts").double()
-        if starts.shape[0] != n_agents:
+        if starts.shape != (n_agents, space.dim):
             raise ValueError(
                 f"starts: expected one θ per agent, [{n_agents}, {space.dim}], "
                 f"got {list(starts.shape)}"
@@ -224,6 +225,9 @@ def fit_theta(
         )
     count("workers", workers)
     check_workers(workers, device)
+    check_seed("seed", seed)
+    if progress is not None and not callable(progress):
+        raise TypeError(f"progress: expected progress(done, total) or None, got {progress!r}")
     if min(workers, n_agents) > 1:
         settings = {
             "n_starts": n_starts, "n_screen": n_screen, "max_iter": max_iter, "tol": tol,
@@ -543,6 +547,8 @@ def profile_intervals(
         )
     space = loss.theta_space
     wald = result.intervals
+    if isinstance(names, str):  # one name, not its characters
+        names = [names]
     names = space.free_names if names is None else list(names)
     unknown = [n for n in names if n not in space.free_names]
     if unknown:
@@ -677,8 +683,10 @@ def particle_check(
     1: too few particles). A gap that differs between θ̂ and nearby θ biases θ̂; on the 2D
     recovery the marginal intervals of agents with a gap under 10 nats at θ̂ covered the
     truth in 0.82–1.0 of them per parameter, the others' in 0.72–0.93 (docs/recovery2d.md).
+    Both run in float64 (a float32 filter moves the gap by tens of nats).
     """
-    theta = theta.to(nuisance.dtype)
+    trials, _, _ = _checked_point(loss, trials, theta, nuisance, 1)
+    theta, nuisance = (x.detach().double().to(trials.device) for x in (theta, nuisance))
     with torch.no_grad():
         approximate = loss.log_likelihood(theta, nuisance, trials)
     particle, ess = loss.particle_log_likelihood(theta, nuisance, trials, n_particles, seed)

@@ -16,7 +16,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import EGreedyModule, QValueModule
 
-from irc_torchrl.checks import positive
+from irc_torchrl.checks import check_fields, positive
 from irc_torchrl.envs.belief import BeliefFeatures, BeliefReward, EKFBelief
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
@@ -43,6 +43,7 @@ class QIterationConfig:
 
     def validate(self) -> QIterationConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        check_fields(self, "q_iteration.")
         sizes = ("n_envs", "rounds", "steps_per_round", "sweeps", "n_belief_basis")
         # without a ridge a design of few samples is singular
         scales = ("n_theta_basis", "belief_scale", "theta_scale", "ridge")

@@ -46,6 +46,7 @@ from irc_torchrl.algorithms.fit import (
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.checks import check_fields
 from irc_torchrl.config import (
     FitConfig,
     RecordingFitConfig,
@@ -136,6 +137,7 @@ class Recovery2DConfig:
 
     def validate(self) -> Recovery2DConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+        check_fields(self)
         if self.task != "firefly2d":
             raise ValueError(f"config: task must be 'firefly2d', got {self.task!r}")
         for name in ("threads", "n_trials"):
@@ -157,9 +159,10 @@ class Recovery2DConfig:
         check_workers(self.fit.workers, resolve_device(self.device))
         _one_of("calibration_tail", self.calibration_tail, TAILS)
         unknown = [m for m in self.method_list if m not in METHODS]
-        if unknown or not self.method_list:
+        repeated = len(set(self.method_list)) != len(self.method_list)
+        if unknown or repeated or not self.method_list:
             raise ValueError(
-                f"config: methods must be a comma-separated subset of {METHODS}, "
+                f"config: methods must be a comma-separated subset of {METHODS}, each once, "
                 f"got {self.methods!r}"
             )
         return self
@@ -220,7 +223,7 @@ def predicted_widths(
         raise ValueError(f"n_trials: expected positive trial counts, got {n_trials}")
     config = Recovery2DConfig(
         seed=seed, n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=max(n_trials)
-    )
+    ).validate()
     trials, theta, _ = simulate_recovery_agents(model, actor, config)
     action_model = _recovery_action_model(config, actor, model)
     loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
@@ -490,7 +493,6 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
     ``trials/`` (the simulated data with truth and recovered beliefs) and figures."""
     out = Path(out)
     with torch_settings(config.threads, True):
-        write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
         bars: dict[str, tqdm] = {}
 
         def progress(method: str, i: int, n: int) -> None:
@@ -502,6 +504,8 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
         trials, summary, _ = recover_firefly2d(config, progress)
         for bar in bars.values():
             bar.close()
+    # written once the run has worked: a refused checkpoint or config leaves no folder behind
+    write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
     write_recovery(trials.cpu(), summary, out)
     return summary
 

@@ -44,6 +44,8 @@ class Firefly2DGymEnv(gym.Env):
         task_theta: Mapping[str, float] | torch.Tensor | None = None,
         model: Firefly2DModel | None = None,
     ) -> None:
+        if model is not None and not isinstance(model, Firefly2DModel):
+            raise TypeError(f"model: expected a Firefly2DModel, got {type(model).__name__}")
         self.model = model if model is not None else Firefly2DModel()
         space = self.model.theta_space
         self._theta = None if theta is None else self._as_theta(theta, "theta")
@@ -81,6 +83,9 @@ class Firefly2DGymEnv(gym.Env):
         if seed is not None or self._td is None:  # unseeded first reset: gymnasium's entropy
             self.env.set_seed(int(self.np_random.integers(2**31)))
         options = options or {}
+        unknown = sorted(set(options) - {"theta", "task_theta"})
+        if unknown:
+            raise ValueError(f"options: unknown key(s) {unknown}; expected 'theta', 'task_theta'")
         kwargs = {}
         for field, default in (("theta", self._theta), ("task_theta", self._task_theta)):
             value = options.get(field, default)

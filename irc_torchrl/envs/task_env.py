@@ -9,6 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.envs.model import TaskModel, action_in_spec
 
 __all__ = ["TaskEnv"]
@@ -60,7 +61,7 @@ class TaskEnv(EnvBase):
         )
         self._make_specs()
         self.rng = torch.Generator(device=self.device if self.device is not None else "cpu")
-        self.set_seed(0 if seed is None else seed)
+        self.set_seed(0 if seed is None else check_seed("seed", seed))
 
     def _check_theta(self, theta: torch.Tensor, field: str) -> torch.Tensor:
         theta = torch.as_tensor(theta, dtype=torch.float32, device=self.device)

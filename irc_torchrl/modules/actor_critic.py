@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
 
+from irc_torchrl.checks import count
 from irc_torchrl.envs.belief import BeliefFeatures
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
@@ -47,6 +48,13 @@ def _feature_dim(model: TaskModel) -> int:
     return model.belief_feature_dim + model.theta_space.dim
 
 
+def _widths(hidden: Sequence[int]) -> list[int]:
+    """The hidden layers' widths, each a positive integer (a width of 0 builds no layer)."""
+    if isinstance(hidden, str) or not isinstance(hidden, Sequence):
+        raise ValueError(f"hidden: expected a list of layer widths, got {hidden!r}")
+    return [count("hidden", width) for width in hidden]
+
+
 def make_actor(
     model: TaskModel, hidden: Sequence[int] = (64, 64, 64), activation: str = "softplus"
 ) -> TensorDictSequential:
@@ -55,7 +63,7 @@ def make_actor(
     mlp = MLP(
         in_features=_feature_dim(model),
         out_features=spec.shape[-1],
-        num_cells=list(hidden),
+        num_cells=_widths(hidden),
         activation_class=_activation(activation),
     )
     return TensorDictSequential(
@@ -72,7 +80,7 @@ def make_critic(
     mlp = MLP(
         in_features=_feature_dim(model) + model.action_spec.shape[-1],
         out_features=1,
-        num_cells=list(hidden),
+        num_cells=_widths(hidden),
         activation_class=_activation(activation),
     )
     return TensorDictSequential(
@@ -111,6 +119,10 @@ class FeaturePolicy(nn.Module):
                 f"got {type(actor).__name__} of {len(parts)} module(s); pass the actor itself, "
                 "not an exploration policy around it"
             )
+        if dtype is not None and dtype not in ACTOR_DTYPES.values():
+            raise ValueError(
+                f"dtype: expected None or one of {list(ACTOR_DTYPES.values())}, got {dtype!r}"
+            )
         _, net, squash = parts
         self.mlp = net.module
         self.dtype = dtype
@@ -142,6 +154,8 @@ def censored_action_model(
     motor noise within the task's action bounds (and lapses at rate ``lapse``, or fitted from
     there with ``fit_lapse``), the network run in ``actor_dtype`` (a name of
     :data:`ACTOR_DTYPES`) inside the float64 likelihood."""
+    if actor_dtype not in ACTOR_DTYPES:
+        raise ValueError(f"actor_dtype: expected one of {list(ACTOR_DTYPES)}, got {actor_dtype!r}")
     bounds = model.action_spec.space
     policy = FeaturePolicy(actor, ACTOR_DTYPES[actor_dtype])
     return CensoredGaussianActionModel(

@@ -198,6 +198,9 @@ class CensoredGaussianActionModel(nn.Module):
             raise ValueError(
                 f"lapse: expected the fitted rate's start in (0, {LAPSE_MAX}), got {lapse}"
             )
+        motor_noise = positive_number("motor_noise", motor_noise)
+        if isinstance(atol, bool) or not isinstance(atol, (int, float)) or not 0 <= atol < 1:
+            raise ValueError(f"atol: expected a tolerance in [0, 1), got {atol!r}")
         self.lapse = lapse
         self.fit_lapse = fit_lapse
         # a frozen copy: the caller's actor stays trainable (and leaves this model as it is)
@@ -205,6 +208,16 @@ class CensoredGaussianActionModel(nn.Module):
         for name, bound in (("low", low), ("high", high)):
             where = bound.device if isinstance(bound, torch.Tensor) else "cpu"
             self.register_buffer(name, torch.as_tensor(bound, dtype=torch.float64, device=where))
+        if (
+            self.low.ndim != 1
+            or self.low.shape != self.high.shape
+            or not (torch.isfinite(self.low).all() and torch.isfinite(self.high).all())
+            or not (self.low < self.high).all()
+        ):
+            raise ValueError(
+                f"low, high: expected finite action bounds [da] with low < high, got "
+                f"{self.low.tolist()} and {self.high.tolist()}"
+            )
         self.atol = atol
         da = self.low.numel()
         names = [f"log_motor_noise_{i}" for i in range(da)]

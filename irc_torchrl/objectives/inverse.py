@@ -16,6 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
+from irc_torchrl.checks import count
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
@@ -89,6 +90,7 @@ class InverseRationalLoss(LossModule):
         final_steps: int = FINAL_STEPS,
     ) -> None:
         super().__init__()
+        n_agents = count("n_agents", n_agents)
         if world not in ("known", "shared"):
             raise ValueError(f"world: expected 'known' or 'shared', got {world!r}")
         if method not in METHODS:
@@ -107,6 +109,11 @@ class InverseRationalLoss(LossModule):
         self.model = model
         self.action_model = action_model
         self.theta_space = theta_space if theta_space is not None else model.theta_space
+        if self.theta_space.names != model.theta_space.names:
+            raise ValueError(
+                f"theta_space: expected the task's parameters {model.theta_space.names}, "
+                f"got {self.theta_space.names}"
+            )
         self.world = world
         free = self.theta_space.free_mask
         start = self.theta_space.to_unconstrained(self.theta_space.default(torch.float64))[free]
@@ -126,6 +133,14 @@ class InverseRationalLoss(LossModule):
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: the objective is a likelihood, not a TD target."""
+
+    @property
+    def in_keys(self) -> list[str]:
+        """The trial fields :meth:`forward` reads, under the keys :meth:`set_keys` gave them
+        (the world's θ only where it is known: a shared world's is the candidate θ)."""
+        keys = self.tensor_keys
+        fields = [keys.state, keys.action, keys.target, keys.mask]
+        return fields + [keys.task_theta] if self.world == "known" else fields
 
     @property
     def parameter_names(self) -> list[str]:

@@ -164,6 +164,7 @@ def check_mixture(model: TaskModel, components: int, final_steps: int) -> None:
             f"components: expected 1 or more than the belief's {model.state_dim} dimensions, "
             f"got {components}"
         )
+    count("components", components)
     count("final_steps", final_steps)
 
 

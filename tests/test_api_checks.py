@@ -1,0 +1,213 @@
+"""The 2D Python API refuses bad input with one line naming the field, before any work.
+
+Each case below once ran on: a silent wrong answer (a one-row θ broadcast to every agent,
+swapped action bounds, a float32 filter), a traceback deep in torch after work had started,
+or a message naming nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from irc_torchrl.algorithms.calibration import interval_pivots
+from irc_torchrl.algorithms.ensemble import (
+    critic_slices,
+    evaluate_policy,
+    load_ensemble_critic,
+    load_ensemble_policy,
+    theta_grid,
+)
+from irc_torchrl.algorithms.fit import fit_theta, particle_check, profile_intervals
+from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths
+from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.config import Firefly2DConfig
+from irc_torchrl.envs import Firefly1DModel, Firefly2DModel
+from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
+from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model, make_actor
+from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.objectives.inverse import InverseRationalLoss
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    return actor, model
+
+
+@pytest.fixture(scope="module")
+def two_agents(shipped):
+    """Two agents with their own θ, 3 trials each, and their recorded fields."""
+    actor, model = shipped
+    space = model.theta_space
+    theta = space.sample((2,), generator=torch.Generator().manual_seed(4))
+    policy = motor_noise_policy(actor, model.action_spec, 0.1)
+    trials = simulate_agents(model, policy, theta, 3, space.default(), seed=2)
+    return trials.select("state", "action", "target", "mask", "task_theta"), theta.double()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"low": torch.ones(2), "high": -torch.ones(2)}, "low, high: expected finite action"),
+        ({"low": -torch.ones(3)}, "low, high: expected finite action bounds"),
+        ({"motor_noise": math.nan}, "motor_noise: expected a positive finite number"),
+        ({"motor_noise": 0.0}, "motor_noise: expected a positive finite number, got 0.0"),
+        ({"atol": -1.0}, r"atol: expected a tolerance in \[0, 1\), got -1.0"),
+    ],
+)
+def test_the_censored_action_model_refuses_bounds_and_noise_it_cannot_score(
+    shipped, kwargs, message
+):
+    """Swapped bounds scored every action near 0 nats; a NaN noise failed in eigh after the
+    screening; a zero noise raised "math domain error"."""
+    actor, model = shipped
+    policy = FeaturePolicy(actor)
+    arguments = {"low": -torch.ones(2), "high": torch.ones(2), **kwargs}
+    with pytest.raises(ValueError, match=message):
+        CensoredGaussianActionModel(policy, **arguments)
+
+
+def test_networks_and_their_precisions_are_named_or_refused(shipped):
+    actor, model = shipped
+    with pytest.raises(ValueError, match=r"actor_dtype: expected one of \['float64', 'float32'\]"):
+        censored_action_model(actor, model, "float16")
+    with pytest.raises(ValueError, match="dtype: expected None or one of"):
+        FeaturePolicy(actor, "float32")
+    with pytest.raises(ValueError, match="hidden: expected an integer ≥ 1, got 0"):
+        make_actor(model, [0])
+    with pytest.raises(ValueError, match="hidden: expected a list of layer widths, got '64'"):
+        make_actor(model, "64")
+
+
+def test_a_particle_check_takes_one_theta_per_agent_and_runs_in_float64(shipped, two_agents):
+    """A one-row θ was broadcast (agent 1 scored at agent 0's θ); a float32 nuisance ran the
+    whole filter in float32 (gaps off by tens of nats)."""
+    actor, model = shipped
+    held, theta = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), n_agents=2)
+    nuisance = torch.full((2, 2), -2.0, dtype=torch.float64)  # exact in float32 too
+    theta = theta.float().double()
+    with pytest.raises(ValueError, match=r"theta: expected one θ per agent, \[2, 9\], got \[1"):
+        particle_check(loss, held, theta[:1], nuisance, n_particles=10)
+    exact = particle_check(loss, held, theta, nuisance, n_particles=10)
+    single = particle_check(loss, held, theta.float(), nuisance.float(), n_particles=10)
+    for key, value in exact.items():
+        assert value.dtype == single[key].dtype and torch.equal(value, single[key]), key
+
+
+def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
+    actor, model = shipped
+    held, theta = two_agents
+    action_model = censored_action_model(actor, model)
+    with pytest.raises(ValueError, match="theta_space: expected the task's parameters"):
+        InverseRationalLoss(model, action_model, Firefly1DModel().theta_space)
+    with pytest.raises(ValueError, match="n_agents: expected an integer ≥ 1, got 0"):
+        InverseRationalLoss(model, action_model, n_agents=0)
+    with pytest.raises(ValueError, match="components: expected an integer ≥ 1, got 6.5"):
+        InverseRationalLoss(model, action_model, method="marginal", components=6.5)
+    loss = InverseRationalLoss(model, action_model, n_agents=2)
+    # TorchRL's LossModule repr lists the keys a loss reads
+    assert "in_keys=['state', 'action', 'target', 'mask', 'task_theta']" in repr(loss)
+    cases = [
+        ({"seed": -1}, "seed: expected an integer in"),
+        ({"progress": "yes"}, "progress: expected progress"),
+        ({"starts": theta.unsqueeze(1)}, r"starts: expected one θ per agent, \[2, 9\]"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises((TypeError, ValueError), match=message):
+            fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1, **kwargs)
+
+
+def test_pivots_take_one_truth_per_fitted_agent(shipped, two_agents):
+    """A one-row truth was broadcast over every agent's interval."""
+    actor, model = shipped
+    held, theta = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), n_agents=2)
+    result = fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1)
+    space = model.theta_space
+    with pytest.raises(ValueError, match=r"theta_true: expected one θ per fitted agent"):
+        interval_pivots(space, theta[:1], result)
+    assert interval_pivots(space, theta, result).shape == (2, len(space.free_names))
+    # one name is a name, not its characters
+    assert profile_intervals(loss, held, result, names="g_v").profiled.shape == (2, space.dim)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"max_steps": 0}, "max_steps: expected an integer ≥ 1, got 0"),
+        ({"min_steps": 61}, "min_steps: expected at most max_steps=60, got 61"),
+        ({"target_distance": (0, 0)}, "target_distance: expected a positive finite number"),
+        ({"target_distance": (3, 1)}, r"target_distance: expected \(nearest, farthest\)"),
+        ({"reward_value": math.nan}, "reward_value: expected a positive finite number"),
+        ({"stop_threshold": 1.5}, r"stop_threshold: expected a forward control in \(-1, 1\)"),
+        ({"target_angle": -1.0}, r"target_angle: expected an angle in \[0, π\]"),
+    ],
+)
+def test_a_2d_task_that_cannot_run_is_refused(kwargs, message):
+    """``max_steps=0`` and a target distance of 0 put NaN into the belief features."""
+    with pytest.raises(ValueError, match=message):
+        Firefly2DModel(**kwargs)
+
+
+def test_the_gym_adapter_critic_slices_and_evaluation_check_their_inputs(shipped):
+    actor, model = shipped
+    with pytest.raises(TypeError, match="model: expected a Firefly2DModel, got Firefly1DModel"):
+        Firefly2DGymEnv(model=Firefly1DModel())
+    env = Firefly2DGymEnv()
+    with pytest.raises(ValueError, match=r"options: unknown key\(s\) \['thetaa'\]"):
+        env.reset(options={"thetaa": {"g_v": 1.0}})
+    critic, critic_actor, critic_model = load_ensemble_critic("firefly2d")
+    space = model.theta_space
+    with pytest.raises(ValueError, match=r"theta: expected one θ \[9\], got \[1, 9\]"):
+        critic_slices(critic_model, critic, critic_actor, space.default().unsqueeze(0))
+    with pytest.raises(ValueError, match="n: expected an integer ≥ 1, got 0"):
+        critic_slices(critic_model, critic, critic_actor, space.default(), n=0)
+    with pytest.raises(ValueError, match=r"thetas: expected shape \[n ≥ 1, 9\], got \[0, 9\]"):
+        evaluate_policy(model, actor, space.default().expand(0, -1))
+    with pytest.raises(ValueError, match="seed: expected an integer in"):
+        theta_grid(space, 4, seed=-1)
+    with pytest.raises(ValueError, match="device: 'cuda:3' requested but|device: 'cuda:3'"):
+        load_ensemble_policy(device="cuda:3")
+
+
+@pytest.mark.parametrize(
+    "config, message",
+    [
+        (lambda c: setattr(c, "seed", -1), r"seed must be an integer in \[0, 2\*\*63\)"),
+        (lambda c: setattr(c, "threads", 1.5), "threads=1.5 is not a valid int"),
+        (lambda c: setattr(c.ddpg, "hidden", "64"), "ddpg.hidden='64' is not a valid list"),
+        (lambda c: setattr(c.ddpg, "hidden", [4.7]), "ddpg.hidden must list positive widths"),
+        (lambda c: setattr(c.ddpg, "max_grad_norm", math.nan), "ddpg.max_grad_norm must be"),
+        (lambda c: setattr(c.evaluation, "seed", -2), r"evaluation.seed must be an integer"),
+    ],
+)
+def test_a_training_config_built_in_python_is_checked_as_a_loaded_one(config, message):
+    """Built in Python, ``seed=-1`` failed after warm-up and pretraining, leaving a folder."""
+    built = Firefly2DConfig()
+    config(built)
+    with pytest.raises(ValueError, match=message):
+        built.validate()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"calibrate": 1.5}, "calibrate=1.5 is not a valid int"),
+        ({"components": 6.5}, "components=6.5 is not a valid int"),
+        ({"methods": "map,map"}, "methods must be a comma-separated subset .* each once"),
+    ],
+)
+def test_a_recovery_config_built_in_python_is_checked_as_a_loaded_one(kwargs, message):
+    """``calibrate=1.5`` failed only after the simulation and every fit; "map,map" fitted twice."""
+    with pytest.raises(ValueError, match=message):
+        Recovery2DConfig(**kwargs).validate()
+
+
+def test_predicted_widths_refuses_no_agents(shipped):
+    actor, model = shipped
+    with pytest.raises(ValueError, match="n_prior_agents \\+ n_mistaken_agents must be ≥ 1"):
+        predicted_widths(model, actor, n_agents=0)
