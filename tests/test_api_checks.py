@@ -211,3 +211,24 @@ def test_predicted_widths_refuses_no_agents(shipped):
     actor, model = shipped
     with pytest.raises(ValueError, match="n_prior_agents \\+ n_mistaken_agents must be ≥ 1"):
         predicted_widths(model, actor, n_agents=0)
+
+
+def test_a_fit_is_read_only_in_the_theta_space_it_was_made_in(shipped, two_agents):
+    """A fit of the full space given with a space that fixes a parameter raised a size
+    mismatch deep in torch."""
+    from irc_torchrl.algorithms.calibration import Calibration
+
+    actor, model = shipped
+    held, _ = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), n_agents=2)
+    result = fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1)
+    other = Firefly1DModel().theta_space
+    with pytest.raises(ValueError, match=r"result: a fit of θ \['g_v'"):
+        result.check_space(other)
+    narrow = model.theta_space
+    factor = torch.ones(len(narrow.free_names), dtype=torch.float64)
+    calibration = Calibration(narrow.free_names, factor, torch.zeros(1, 2, len(factor)))
+    assert calibration.apply(narrow, result).theta_hat.shape == (2, narrow.dim)
+    theirs = Calibration(other.free_names, torch.ones(2, dtype=torch.float64), torch.zeros(1, 2, 2))
+    with pytest.raises(ValueError, match="result: a fit of θ"):
+        theirs.apply(other, result)

@@ -265,6 +265,11 @@ def test_fisher_intervals_identification_and_bounds(space):
     assert not iv.identified[0, :2].any() and torch.isinf(iv.std[0, :2]).all()
     torch.testing.assert_close(iv.low[0, :2], low[:2])
     torch.testing.assert_close(iv.high[0, :2], high[:2])
+    # one Hessian for three agents was broadcast to all of them: refused
+    with pytest.raises(ValueError, match=r"hessian: expected one \[p, p\] matrix per agent"):
+        fisher_intervals(space, theta_hat, u, hessian[:1])
+    with pytest.raises(ValueError, match=r"meat: expected one \[p, p\] matrix per agent"):
+        fisher_intervals(space, theta_hat, u, hessian, meat=hessian[:, :2, :2])
 
 
 # --- the fit ------------------------------------------------------------------------------

@@ -68,6 +68,9 @@ def test_per_agent_rates_that_do_not_fit_the_action_are_refused():
     for shape in ((3, 1), (2, 2, 2)):
         with pytest.raises(ValueError, match=r"lapse: expected rates broadcasting against the"):
             Lapse(SPEC, torch.full(shape, 0.1))(td)
+    # placed before the policy: no action to act on ("NoneType has no attribute shape")
+    with pytest.raises(KeyError, match="action: Lapse acts on the policy's action; none is set"):
+        Lapse(SPEC, 0.1)(TensorDict({}, [2]))
 
 
 def test_a_lapse_keeps_the_marginal_gradient_finite_where_the_policy_cannot_act_so():

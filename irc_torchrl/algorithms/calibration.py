@@ -166,6 +166,7 @@ class Calibration:
             raise ValueError(
                 f"space: expected the free parameters {self.names}, got {space.free_names}"
             )
+        result.check_space(space)
         hat = result.theta_hat
         free = space.free_mask.to(hat.device)
         scale = torch.ones(space.dim, dtype=hat.dtype, device=hat.device)

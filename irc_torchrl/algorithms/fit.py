@@ -37,6 +37,7 @@ from irc_torchrl.objectives.fisher import (
     observed_covariance,
 )
 from irc_torchrl.objectives.inverse import InverseRationalLoss
+from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
     "COVARIANCES",
@@ -135,6 +136,13 @@ class FitResult:
         low = torch.where(held & (self.nuisance < 0), -torch.inf, low)
         high = torch.where(held & (self.nuisance > 0), torch.inf, high)
         return low, high
+
+    def check_space(self, space: ThetaSpace) -> None:
+        """Refuse a θ space other than the one this fit was made in (its parameter names)."""
+        if list(self.names) != list(space.names):
+            raise ValueError(
+                f"result: a fit of θ {list(self.names)}, not of the space given, {space.names}"
+            )
 
     def agent(self, i: int) -> dict:
         """One agent's result as plain Python values (the ``summary.json`` entry)."""
@@ -547,6 +555,7 @@ def profile_intervals(
         )
     space = loss.theta_space
     wald = result.intervals
+    result.check_space(space)
     if isinstance(names, str):  # one name, not its characters
         names = [names]
     names = space.free_names if names is None else list(names)

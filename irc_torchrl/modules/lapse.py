@@ -44,7 +44,9 @@ class Lapse(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if not self.lapse.any() or exploration_type() not in (ExplorationType.RANDOM, None):
             return tensordict
-        action = tensordict.get(self.action_key)
+        action = tensordict.get(self.action_key, None)
+        if action is None:
+            raise KeyError(f"{self.action_key}: Lapse acts on the policy's action; none is set")
         try:
             fits = torch.broadcast_shapes(self.lapse.shape, action.shape) == action.shape
         except RuntimeError:

@@ -108,6 +108,16 @@ def fisher_intervals(
     device = theta_hat.device
     free = space.free_mask.to(device)
     k = int(free.sum())
+    for name, matrix in (("hessian", hessian), ("meat", meat)):
+        if matrix is not None and (
+            matrix.ndim != 3 or matrix.shape[0] != n or matrix.shape[1:] != hessian.shape[-2:]
+        ):
+            raise ValueError(
+                f"{name}: expected one [p, p] matrix per agent, [{n}, p, p] with p ≥ {k}, "
+                f"got {list(matrix.shape)}"
+            )
+    if hessian.shape[-1] != hessian.shape[-2] or hessian.shape[-1] < k:
+        raise ValueError(f"hessian: expected [{n}, p, p] with p ≥ {k}, got {list(hessian.shape)}")
     cov_u, unbounded = observed_covariance(hessian)
     unbounded = unbounded[:, :k]
     if meat is not None:
