@@ -22,6 +22,7 @@ from typing import Any
 import torch
 
 import irc_torchrl
+from irc_torchrl.checks import shown
 from irc_torchrl.data.files import atomic_path
 from irc_torchrl.theta import ThetaSpace
 
@@ -95,7 +96,7 @@ def _check_save_arguments(
     """Refuse what :func:`load_checkpoint` would refuse to read back, or read back as
     something else (a state entry ``task`` would overwrite the header's)."""
     if not isinstance(task, str) or not task:
-        raise ValueError(f"save_checkpoint: task must be a non-empty string, got {task!r:.80}")
+        raise ValueError(f"save_checkpoint: task must be a non-empty string, got {shown(task)}")
     if not isinstance(theta_space, ThetaSpace):
         raise ValueError(
             f"save_checkpoint: theta_space must be a ThetaSpace, got {type(theta_space).__name__}"

@@ -1,17 +1,52 @@
-"""One-line refusals of unusable numbers, naming the field, raised before any work."""
+"""One-line refusals of unusable input, naming the field, raised before any work."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
+from collections.abc import Mapping
 from numbers import Integral, Real
 from typing import Any
 
-__all__ = ["SEED_LIMIT", "check_fields", "count", "positive", "positive_number", "seed"]
+import torch
 
-#: seeds are integers in [0, SEED_LIMIT): torch's generators take 64 bits, and the seeds
-#: derived from one (``seed + 1000 * k``) must fit too
+__all__ = [
+    "SEED_LIMIT",
+    "check_fields",
+    "count",
+    "positive",
+    "positive_number",
+    "real",
+    "seed",
+    "shown",
+]
+
+#: a config's seeds are integers in [0, SEED_LIMIT): torch's generators take 64 bits, and the
+#: seeds derived from one (``seed + 1000 * k``) must fit too
 SEED_LIMIT = 2**63
+
+
+def shown(value: object, width: int = 80) -> str:
+    """``repr(value)`` on one line, cut to ``width`` characters (a tensor's spans several)."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def _scalar(value: object) -> object:
+    """A 0-d tensor or numpy scalar as the Python number it holds; anything else unchanged."""
+    if getattr(value, "shape", None) == () and hasattr(value, "item"):
+        return value.item()
+    return value
+
+
+def real(field: str, value: object) -> float:
+    """``value`` as a float if it is a real number (a 0-d tensor or numpy scalar counts; a
+    bool or a numeric string does not), else a one-line error naming ``field``."""
+    value = _scalar(value)
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise ValueError(f"{field}: expected a real number, got {shown(value)}")
+    return float(value)
 
 
 def positive(**values: float) -> None:
@@ -26,33 +61,63 @@ def positive(**values: float) -> None:
 def positive_number(field: str, value: float) -> float:
     """``value`` as a float if it is a finite number > 0, else a one-line error naming
     ``field``."""
-    if isinstance(value, bool) or not isinstance(value, Real) or not 0 < value < math.inf:
-        raise ValueError(f"{field}: expected a positive finite number, got {value!r}")
-    return float(value)
+    number = _scalar(value)
+    if isinstance(number, bool) or not isinstance(number, Real) or not 0 < number < math.inf:
+        raise ValueError(f"{field}: expected a positive finite number, got {shown(value)}")
+    return float(number)
 
 
-def count(field: str, value: int) -> int:
-    """``value`` as an int if it is an integer ≥ 1, else a one-line error naming ``field``."""
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < 1:
-        raise ValueError(f"{field}: expected an integer ≥ 1, got {value!r}")
-    return int(value)
+def count(field: str, value: int, least: int = 1) -> int:
+    """``value`` as an int if it is an integer ≥ ``least``, else a one-line error naming
+    ``field``."""
+    number = _scalar(value)
+    if isinstance(number, bool) or not isinstance(number, Integral) or number < least:
+        raise ValueError(f"{field}: expected an integer ≥ {least}, got {shown(value)}")
+    return int(number)
 
 
-def _is(value: Any, kind: type) -> bool:
-    """Whether ``value`` may stand for a field whose default is a ``kind`` (an int for a float,
-    never a bool for a number)."""
+def seed(field: str, value: int) -> int:
+    """``value`` as an int if torch's generators take it as a seed, ``[0, 2**64)`` (a config's
+    seed stays below :data:`SEED_LIMIT`, so the seeds derived from it fit here)."""
+    number = _scalar(value)
+    if isinstance(number, bool) or not isinstance(number, Integral) or not 0 <= number < 2**64:
+        raise ValueError(f"{field}: expected an integer in [0, 2**64), got {shown(value)}")
+    return int(number)
+
+
+def _canonical(value: Any, default: Any) -> Any:
+    """``value`` in the form of the field's ``default`` (its type, its list elements'), or
+    ``None`` if it cannot stand for it: a Path or torch device for a text field, a tuple or
+    array for a list, a numpy or 0-d tensor number for a number; never a bool for a number."""
+    kind = type(default)
+    if kind is str:
+        return str(value) if isinstance(value, (str, os.PathLike, torch.device)) else None
+    if kind in (list, tuple):
+        if isinstance(value, (str, Mapping)) or not hasattr(value, "__iter__"):
+            return None
+        items = list(value)
+        if default:  # no element to take the type from otherwise
+            items = [_canonical(item, default[0]) for item in items]
+            if any(item is None for item in items):
+                return None
+        return kind(items)
+    if isinstance(default, Mapping):
+        return dict(value) if isinstance(value, Mapping) else None
+    value = _scalar(value)
     if kind is bool:
-        return isinstance(value, bool)
+        return value if isinstance(value, bool) else None
     if kind in (int, float):
         number = Integral if kind is int else Real
-        return isinstance(value, number) and not isinstance(value, bool)
-    return isinstance(value, kind)
+        good = isinstance(value, number) and not isinstance(value, bool)
+        return kind(value) if good else None
+    return value if isinstance(value, kind) else None
 
 
 def check_fields(config: Any, prefix: str = "") -> None:
-    """Refuse a field of the dataclass ``config`` (nested ones too) whose value is not of its
-    default's type (``1.5`` or ``True`` for an integer), and a ``seed`` outside
-    ``[0, SEED_LIMIT)``: what the YAML loader's parsing ensures, for a config built in Python."""
+    """Put every field of the dataclass ``config`` (nested ones too) in its default's form,
+    refusing one that cannot take it (``1.5`` or ``True`` for an integer) and a ``seed``
+    outside ``[0, SEED_LIMIT)``: what the YAML loader's parsing ensures, for a config built in
+    Python (and what ``config.yaml`` can then hold)."""
     for f in dataclasses.fields(config):
         value, name = getattr(config, f.name), prefix + f.name
         if dataclasses.is_dataclass(value):
@@ -64,14 +129,12 @@ def check_fields(config: Any, prefix: str = "") -> None:
             default = f.default_factory()
         else:
             continue
-        if default is not None and not _is(value, type(default)):
-            raise ValueError(f"config: {name}={value!r} is not a valid {type(default).__name__}")
-        if f.name == "seed" and not 0 <= value < SEED_LIMIT:
+        if default is not None:
+            canonical = _canonical(value, default)
+            if canonical is None:
+                raise ValueError(
+                    f"config: {name}={shown(value)} is not a valid {type(default).__name__}"
+                )
+            setattr(config, f.name, canonical)
+        if f.name == "seed" and not 0 <= getattr(config, f.name) < SEED_LIMIT:
             raise ValueError(f"config: {name} must be an integer in [0, 2**63), got {value}")
-
-
-def seed(field: str, value: int) -> int:
-    """``value`` as an int if it is an integer in ``[0, SEED_LIMIT)``, else a one-line error."""
-    if isinstance(value, bool) or not isinstance(value, Integral) or not 0 <= value < SEED_LIMIT:
-        raise ValueError(f"{field}: expected an integer in [0, 2**63), got {value!r}")
-    return int(value)

@@ -11,10 +11,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
-from numbers import Integral, Real
+from numbers import Integral
 
 import torch
 from torchrl.data import Bounded
+
+from irc_torchrl.checks import real, shown
 
 __all__ = ["Parameter", "ThetaSpace"]
 
@@ -41,7 +43,7 @@ class Parameter:
                     f"parameter {self.name!r}: {key} must be a string, got {getattr(self, key)!r}"
                 )
         for key in ("low", "high", "default"):
-            value = _real(f"parameter {self.name!r}: {key}", getattr(self, key))
+            value = real(f"parameter {self.name!r}: {key}", getattr(self, key))
             if not math.isfinite(value):
                 raise ValueError(
                     f"parameter {self.name!r}: {key} must be a finite number, got {value}"
@@ -81,7 +83,7 @@ class ThetaSpace:
             raise ValueError("ThetaSpace: expected at least one Parameter, got none")
         for p in parameters:
             if not isinstance(p, Parameter):
-                raise ValueError(f"ThetaSpace: expected Parameter entries, got {p!r:.80}")
+                raise ValueError(f"ThetaSpace: expected Parameter entries, got {shown(p)}")
         names = [p.name for p in parameters]
         if len(set(names)) != len(names):
             raise ValueError(f"ThetaSpace: parameter names must be unique, got {names}")
@@ -89,7 +91,7 @@ class ThetaSpace:
         self._index = {name: i for i, name in enumerate(names)}
         if not isinstance(fixed or {}, Mapping):
             raise ValueError(
-                f"ThetaSpace: fixed must be a {{name: value}} mapping, got {fixed!r:.80}"
+                f"ThetaSpace: fixed must be a {{name: value}} mapping, got {shown(fixed)}"
             )
         self.fixed = {name: self._fixed_value(name, value) for name, value in (fixed or {}).items()}
 
@@ -97,7 +99,7 @@ class ThetaSpace:
         """``value`` as a plain float within ``name``'s range (a tensor or numpy scalar would
         not survive ``json.dumps(to_config())``)."""
         p = self[name]
-        value = _real(f"fixed {name}", value)
+        value = real(f"fixed {name}", value)
         if not p.low <= value <= p.high:
             raise ValueError(f"fixed {name}={value} outside its range [{p.low}, {p.high}]")
         return value
@@ -175,7 +177,7 @@ class ThetaSpace:
     def with_range(self, name: str, low: float, high: float) -> ThetaSpace:
         """A copy whose parameter ``name`` has the prior range ``[low, high]``."""
         p = self[name]
-        low, high = _real(f"{name}: low", low), _real(f"{name}: high", high)
+        low, high = real(f"{name}: low", low), real(f"{name}: high", high)
         new = replace(p, low=low, high=high, default=min(max(p.default, low), high))
         params = [new if q.name == name else q for q in self.parameters]
         return ThetaSpace(params, self.fixed)
@@ -284,7 +286,7 @@ class ThetaSpace:
         bool does not): ``float("1.3")`` would hide a config typed as text.
         """
         if not isinstance(values, Mapping):
-            raise ValueError(f"{field}: expected a {{name: number}} mapping, got {values!r:.80}")
+            raise ValueError(f"{field}: expected a {{name: number}} mapping, got {shown(values)}")
         if base is not None:
             self._check_shape(base, f"{field}: base")
         theta = (self.default(torch.float64) if base is None else base.to(torch.float64)).clone()
@@ -293,7 +295,7 @@ class ThetaSpace:
                 raise KeyError(
                     f"{field}: unknown θ parameter {name!r}; valid names: {', '.join(self.names)}"
                 )
-            theta[..., self._index[name]] = _real(f"{field}: {name}", value)
+            theta[..., self._index[name]] = real(f"{field}: {name}", value)
         return self.validate(theta.float(), field)
 
     def to_config(self) -> dict:
@@ -311,11 +313,12 @@ class ThetaSpace:
         """The θ space :meth:`to_config` described. A malformed description (a checkpoint's,
         say) is a one-line ValueError naming ``field``, not a KeyError or TypeError."""
         form = "{'parameters': [{name, low, high, default, ...}], 'fixed': {name: value}}"
-        if not isinstance(config, Mapping) or not isinstance(config.get("parameters"), list):
-            raise ValueError(f"{field}: expected {form}, got {config!r:.80}")
+        parameters = config.get("parameters") if isinstance(config, Mapping) else None
+        if not isinstance(parameters, (list, tuple)):
+            raise ValueError(f"{field}: expected {form}, got {shown(config)}")
         if not isinstance(config.get("fixed", {}), Mapping):
             raise ValueError(
-                f"{field}: fixed: expected {{name: value}}, got {config['fixed']!r:.80}"
+                f"{field}: fixed: expected {{name: value}}, got {shown(config['fixed'])}"
             )
         try:
             params = [_parameter_from_config(p) for p in config["parameters"]]
@@ -330,7 +333,7 @@ def _parameter_from_config(entry: object) -> Parameter:
     or unknown keys by name (``Parameter(**entry)`` would raise a bare TypeError)."""
     names = [f.name for f in fields(Parameter)]
     if not isinstance(entry, Mapping):
-        raise ValueError(f"parameter entry: expected a mapping of {names}, got {entry!r:.80}")
+        raise ValueError(f"parameter entry: expected a mapping of {names}, got {shown(entry)}")
     problems = [f"unknown key {k!r}" for k in entry if k not in names]
     problems += [f"missing key {k!r}" for k in ("name", "low", "high", "default") if k not in entry]
     if problems:
@@ -341,22 +344,12 @@ def _parameter_from_config(entry: object) -> Parameter:
     return Parameter(**entry)
 
 
-def _real(field: str, value: object) -> float:
-    """``value`` as a float if it is a real number (a 0-d tensor or numpy scalar counts), else
-    a one-line error naming ``field``. A bool is not a number here, nor a numeric string."""
-    if getattr(value, "shape", None) == () and hasattr(value, "item"):
-        value = value.item()
-    if isinstance(value, bool) or not isinstance(value, Real):
-        raise ValueError(f"{field}: expected a real number, got {value!r:.80}")
-    return float(value)
-
-
 def _shape(field: str, shape: int | Iterable[int]) -> tuple[int, ...]:
     """``shape`` as a tuple of sizes ≥ 0; an int is a 1-D shape."""
     sizes = (shape,) if isinstance(shape, Integral) else shape
     if not isinstance(sizes, Iterable) or isinstance(sizes, (str, torch.Tensor)):
-        raise ValueError(f"{field}: expected an int or a sequence of ints, got {shape!r:.80}")
+        raise ValueError(f"{field}: expected an int or a sequence of ints, got {shown(shape)}")
     sizes = tuple(sizes)
     if not all(isinstance(n, Integral) and not isinstance(n, bool) and n >= 0 for n in sizes):
-        raise ValueError(f"{field}: expected sizes that are integers ≥ 0, got {shape!r:.80}")
+        raise ValueError(f"{field}: expected sizes that are integers ≥ 0, got {shown(shape)}")
     return tuple(int(n) for n in sizes)

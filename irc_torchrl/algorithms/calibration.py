@@ -74,6 +74,7 @@ def interval_pivots(space: ThetaSpace, theta_true: torch.Tensor, result: FitResu
     where the fit has no interval (an infinite sd: the whole range, whatever a factor).
     """
     theta_true = space.validate(theta_true, "theta_true")
+    result.check_space(space)
     if theta_true.shape != result.theta_hat.shape:
         raise ValueError(
             f"theta_true: expected one θ per fitted agent, {list(result.theta_hat.shape)}, "

@@ -138,10 +138,21 @@ class FitResult:
         return low, high
 
     def check_space(self, space: ThetaSpace) -> None:
-        """Refuse a θ space other than the one this fit was made in (its parameter names)."""
-        if list(self.names) != list(space.names):
+        """Refuse a θ space other than the one this fit was made in: other parameters, another
+        number of them free, or a parameter it holds fixed at another value than θ̂ has."""
+        free = self.information.shape[-1] - self.nuisance.shape[-1]
+        held = (
+            all(
+                bool((self.theta_hat[:, space.index(name)] == value).all())
+                for name, value in space.fixed.items()
+            )
+            if list(self.names) == list(space.names)
+            else False
+        )
+        if not held or free != len(space.free_names):
             raise ValueError(
-                f"result: a fit of θ {list(self.names)}, not of the space given, {space.names}"
+                f"result: a fit of θ {list(self.names)} with {free} free, not of the space given "
+                f"({space.names}, free: {space.free_names})"
             )
 
     def agent(self, i: int) -> dict:

@@ -56,7 +56,7 @@ import math
 import torch
 from torchrl.data import Bounded
 
-from irc_torchrl.checks import count, positive_number
+from irc_torchrl.checks import count, positive_number, real
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.theta import Parameter, ThetaSpace
@@ -166,14 +166,14 @@ class Firefly2DModel(TaskModel):
                 f"got {self.theta_space.names}"
             )
         self.max_steps = count("max_steps", max_steps)
-        self.min_steps = count("min_steps", min_steps)
+        self.min_steps = count("min_steps", min_steps, least=0)  # 0: may stop at once
         if self.min_steps > self.max_steps:
             raise ValueError(f"min_steps: expected at most max_steps={max_steps}, got {min_steps}")
-        if not (isinstance(stop_threshold, (int, float)) and -1 < stop_threshold < 1):
+        self.stop_threshold = real("stop_threshold", stop_threshold)
+        if not -1 < self.stop_threshold < 1:
             raise ValueError(
-                f"stop_threshold: expected a forward control in (-1, 1), got {stop_threshold!r}"
+                f"stop_threshold: expected a forward control in (-1, 1), got {stop_threshold}"
             )
-        self.stop_threshold = float(stop_threshold)
         expected = f"target_distance: expected (nearest, farthest), got {target_distance}"
         if len(target_distance) != 2:
             raise ValueError(expected)
@@ -181,9 +181,9 @@ class Firefly2DModel(TaskModel):
         if lo > hi:
             raise ValueError(expected)
         self.target_distance = (lo, hi)
-        if not (isinstance(target_angle, (int, float)) and 0 <= target_angle <= math.pi):
-            raise ValueError(f"target_angle: expected an angle in [0, π], got {target_angle!r}")
-        self.target_angle = float(target_angle)
+        self.target_angle = real("target_angle", target_angle)
+        if not 0 <= self.target_angle <= math.pi:
+            raise ValueError(f"target_angle: expected an angle in [0, π], got {target_angle}")
         self.reward_value = positive_number("reward_value", reward_value)
         self.action_spec = Bounded(-1.0, 1.0, shape=(2,), dtype=torch.float32)
         self._idx = {n: i for i, n in enumerate(self.theta_space.names)}

@@ -50,7 +50,7 @@ def _feature_dim(model: TaskModel) -> int:
 
 def _widths(hidden: Sequence[int]) -> list[int]:
     """The hidden layers' widths, each a positive integer (a width of 0 builds no layer)."""
-    if isinstance(hidden, str) or not isinstance(hidden, Sequence):
+    if isinstance(hidden, str) or not hasattr(hidden, "__iter__"):
         raise ValueError(f"hidden: expected a list of layer widths, got {hidden!r}")
     return [count("hidden", width) for width in hidden]
 

@@ -136,11 +136,9 @@ class InverseRationalLoss(LossModule):
 
     @property
     def in_keys(self) -> list[str]:
-        """The trial fields :meth:`forward` reads, under the keys :meth:`set_keys` gave them
-        (the world's θ only where it is known: a shared world's is the candidate θ)."""
+        """The trial fields :meth:`forward` reads, under the keys :meth:`set_keys` gave them."""
         keys = self.tensor_keys
-        fields = [keys.state, keys.action, keys.target, keys.mask]
-        return fields + [keys.task_theta] if self.world == "known" else fields
+        return [keys.state, keys.action, keys.target, keys.mask, keys.task_theta]
 
     @property
     def parameter_names(self) -> list[str]:
