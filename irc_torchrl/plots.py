@@ -409,6 +409,10 @@ def report_run(folder: str | Path) -> list[Path]:
     if not isinstance(summary, dict):
         raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
     beliefs, figures = _archive(folder / "beliefs.npz"), _archive(folder / "figures.npz")
+    if summary.get("command") == "fit" and beliefs is None:
+        warnings.warn(
+            f"report: no beliefs.npz in {folder}: the belief figures are not drawn", stacklevel=2
+        )
     trials = _recovered_trials(summary, folder / "trials")
     # every figure is drawn aside first, so a field found lacking half-way leaves none behind
     with tempfile.TemporaryDirectory(dir=folder, prefix=".report.") as scratch:
