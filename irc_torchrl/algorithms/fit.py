@@ -141,15 +141,13 @@ class FitResult:
         """Refuse a θ space other than the one this fit was made in: other parameters, another
         number of them free, or a parameter it holds fixed at another value than θ̂ has."""
         free = self.information.shape[-1] - self.nuisance.shape[-1]
-        held = (
-            all(
+        same = list(self.names) == list(space.names) and free == len(space.free_names)
+        if same:  # and what the space holds fixed, the fit held there too
+            same = all(
                 bool((self.theta_hat[:, space.index(name)] == value).all())
                 for name, value in space.fixed.items()
             )
-            if list(self.names) == list(space.names)
-            else False
-        )
-        if not held or free != len(space.free_names):
+        if not same:
             raise ValueError(
                 f"result: a fit of θ {list(self.names)} with {free} free, not of the space given "
                 f"({space.names}, free: {space.free_names})"

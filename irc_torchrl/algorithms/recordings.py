@@ -379,13 +379,12 @@ def fit_recordings(
     write_json(out / "summary.json", summary)
     written = {path.name for path in report_run(out)}
     if earlier is not None:  # an earlier fit's figures this one did not draw again
-        labels = [agent.get("label") for agent in earlier]
         kinds, methods = ("recovery", "estimates"), ("", "_map", "_marginal")
         figures = [f"{kind}{method}.png" for kind in kinds for method in methods]
         figures += [
-            f"{label}_beliefs_{view}.png"
-            for label in labels
-            if isinstance(label, str)
+            f"{agent['label']}_beliefs_{view}.png"
+            for agent in earlier
+            if isinstance(agent.get("label"), str)
             for view in ("overhead", "time")
         ]
         _remove_stale(out, figures, written)

@@ -96,9 +96,9 @@ def read_trials(
     for label, trial in trials:
         check_trial(label, trial, model, source, time_column)
     trials = _on_model_grid(trials, model, source, time_column, trial_column, resample)
-    check_kinematics(trials, model, source, time_column)
     held = _pack(trials, model, time_column, trial_column)
     validate_trials(held, model)
+    check_kinematics(held, model, source)
     return held
 
 

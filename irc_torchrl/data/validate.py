@@ -15,6 +15,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 from torchrl.data import Categorical
 
 from irc_torchrl.envs.model import TaskModel, action_in_spec
@@ -246,44 +247,26 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
                 )
 
 
-def check_kinematics(
-    trials: list[tuple[int | float, Trial]], model: TaskModel, source: str, time_column: str
-) -> None:
+def check_kinematics(held: TensorDictBase, model: TaskModel, source: str) -> None:
     """Refuse a recording whose positions (angles) do not move as the task's transition says.
 
     Each column is checked alone against the θ space's reach, so a velocity declared in the
-    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes. Here each step's
-    recorded change of the distance (angle) fields is regressed on the change the transition
-    predicts from the recorded state and action (under the world's θ): a slope beyond
-    :data:`KINEMATIC_RATIO` either way, many standard errors from 1, is a unit mistake. A
-    recording that hardly moves (its predicted changes all zero) or whose tracker jitters as
-    much as it moves leaves the slope unsure, and is let through.
+    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes. Here each recorded
+    step's change of the distance (angle) fields of the held trials ``[n, T]`` is regressed on
+    the change the transition predicts from the recorded state and action (under the world's
+    θ): a slope beyond :data:`KINEMATIC_RATIO` either way, many standard errors from 1, is a
+    unit mistake. A recording that hardly moves (its predicted changes all zero) or whose
+    tracker jitters as much as it moves leaves the slope unsure, and is let through.
     """
-    space, names = model.theta_space, model.state_names
-    default = space.default(torch.float64).numpy()
-    state, action, theta, after = [], [], [], []
-    for _, trial in trials:
-        rows = np.stack([np.asarray(trial[n], np.float64) for n in names], -1)
-        acts = np.stack([np.asarray(trial[n], np.float64) for n in model.action_names], -1)
-        given = [THETA_PREFIX + n in trial for n in space.names]
-        world = np.stack(
-            [
-                np.asarray(trial[THETA_PREFIX + n], np.float64) if known else np.full(len(rows), d)
-                for n, d, known in zip(space.names, default, given, strict=True)
-            ],
-            -1,
-        )
-        state.append(rows[:-1])
-        action.append(acts[:-1])
-        theta.append(world[:-1])
-        after.append(rows[1:])
-    state_t = torch.from_numpy(np.concatenate(state))
-    action_t = torch.from_numpy(np.concatenate(action))
-    if isinstance(model.action_spec, Categorical):
-        action_t = action_t[..., 0].long()
-    predicted = model.transition(state_t, action_t, torch.from_numpy(np.concatenate(theta)))
-    recorded = np.concatenate(after) - state_t.numpy()
-    predicted = predicted.numpy() - state_t.numpy()
+    stepped = held["mask"][:, 1:]  # a recorded step and the recorded one after it
+    state = held["state"].double()
+    before, after = state[:, :-1][stepped], state[:, 1:][stepped]
+    action = held["action"][:, :-1][stepped]
+    action = action if isinstance(model.action_spec, Categorical) else action.double()
+    world = held["task_theta"].double()[:, :-1][stepped]
+    predicted = (model.transition(before, action, world) - before).numpy()
+    recorded = (after - before).numpy()
+    names = model.state_names
     units = dict(zip(names, model.state_units, strict=True))
     for kind in ("rad", "distance"):  # a heading's mistake also bends the predicted path
         columns = [i for i, n in enumerate(names) if units[n] == kind]
