@@ -18,6 +18,7 @@ __all__ = [
     "positive",
     "positive_number",
     "real",
+    "resolve_device",
     "seed",
     "shown",
 ]
@@ -138,3 +139,23 @@ def check_fields(config: Any, prefix: str = "") -> None:
             setattr(config, f.name, canonical)
         if f.name == "seed" and not 0 <= getattr(config, f.name) < SEED_LIMIT:
             raise ValueError(f"config: {name} must be an integer in [0, 2**63), got {value}")
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device called ``name``, refused early when this machine has none of it."""
+    try:
+        device = torch.device(name)
+    except RuntimeError as error:
+        raise ValueError(f"device: {error}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: {name!r} requested but torch.cuda.is_available() is False")
+    if device.type == "meta":
+        raise ValueError("device: 'meta' tensors hold no values; expected 'cpu' or 'cuda'")
+    try:
+        torch.zeros(1, device=device)
+    except (RuntimeError, AssertionError):  # a backend this torch build or machine lacks
+        raise ValueError(
+            f"device: {name!r} is not usable here (no working {device.type!r} backend in this "
+            "torch); expected 'cpu' or an available accelerator"
+        ) from None
+    return device

@@ -226,7 +226,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         help="draw the figures of a run folder (fit, recover, demo or train) as PNG",
         description=(
             "Read DIR/summary.json and write PNG figures into DIR: θ̂ against the true θ with "
-            "95% intervals where the truth is known (else θ̂ with intervals per recording), "
+            "95% intervals for the recordings whose truth is known (the others' θ̂ is in the "
+            "table and summary.json; with no truth, θ̂ with intervals per recording), "
             "the recovered beliefs (from beliefs.npz), training curves for `irc train`, and for "
             "the 2D task q_function.png (Q of the run's checkpoint, paper Fig. 1B)."
         ),

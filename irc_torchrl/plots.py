@@ -390,8 +390,9 @@ def _agent_figures(part: Mapping, path: Path, units: Mapping[str, str]) -> Path:
 def report_run(folder: str | Path) -> list[Path]:
     """Draw the figures of a run folder from its ``summary.json``; returns the PNGs written.
 
-    Agents (``irc fit``, ``recover``, ``demo``): θ̂ against θ* with 95% intervals where the
-    truth is known, else θ̂ with intervals per recording; per method too where the summary
+    Agents (``irc fit``, ``recover``, ``demo``): θ̂ against θ* with 95% intervals for the agents
+    whose truth is known (when any is), else θ̂ with intervals per recording; per method too
+    where the summary
     has ``methods`` (``--method both``, ``irc recover``). ``beliefs.npz`` (``irc fit``): the
     recovered beliefs overhead and over time, per recording; ``trials/`` (``irc recover``, ``irc
     demo --task firefly2d``): agent 0's recovered beliefs against its own, per method;

@@ -24,7 +24,7 @@ from irc_torchrl.algorithms.fit import fit_theta, particle_check, profile_interv
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import Firefly2DConfig
-from irc_torchrl.envs import Firefly1DModel, Firefly2DModel
+from irc_torchrl.envs import Firefly1DModel, Firefly2DEnv, Firefly2DModel
 from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model, make_actor
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
@@ -170,9 +170,11 @@ def test_the_gym_adapter_critic_slices_and_evaluation_check_their_inputs(shipped
         evaluate_policy(model, actor, space.default().expand(0, -1))
     with pytest.raises(ValueError, match="seed: expected an integer in"):
         theta_grid(space, 4, seed=-1)
-    if not torch.cuda.is_available():
+    if not torch.cuda.is_available():  # an AssertionError 12 frames deep in the env before
         with pytest.raises(ValueError, match="device: 'cuda:3' requested but"):
             load_ensemble_policy(device="cuda:3")
+        with pytest.raises(ValueError, match="device: 'cuda:3' requested but"):
+            Firefly2DEnv(device="cuda:3")
 
 
 @pytest.mark.parametrize(

@@ -7,6 +7,8 @@ from contextlib import contextmanager
 
 import torch
 
+from irc_torchrl.checks import resolve_device
+
 __all__ = ["check_workers", "flushing_denormals", "resolve_device", "torch_settings"]
 
 
@@ -26,26 +28,6 @@ def torch_settings(threads: int, flush_denormal: bool) -> Iterator[None]:
     finally:
         torch.set_num_threads(previous)
         torch.set_flush_denormal(False)  # torch's default; it has no getter to restore from
-
-
-def resolve_device(name: str) -> torch.device:
-    """The torch device called ``name``, refused early when this machine has none of it."""
-    try:
-        device = torch.device(name)
-    except RuntimeError as error:
-        raise ValueError(f"device: {error}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device: {name!r} requested but torch.cuda.is_available() is False")
-    if device.type == "meta":
-        raise ValueError("device: 'meta' tensors hold no values; expected 'cpu' or 'cuda'")
-    try:
-        torch.zeros(1, device=device)
-    except (RuntimeError, AssertionError):  # a backend this torch build or machine lacks
-        raise ValueError(
-            f"device: {name!r} is not usable here (no working {device.type!r} backend in this "
-            "torch); expected 'cpu' or an available accelerator"
-        ) from None
-    return device
 
 
 def flushing_denormals() -> bool:

@@ -9,6 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from irc_torchrl.checks import resolve_device
 from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.envs.model import TaskModel, action_in_spec
 
@@ -49,6 +50,7 @@ class TaskEnv(EnvBase):
         device: torch.device | str | None = None,
         seed: int | None = None,
     ) -> None:
+        device = None if device is None else resolve_device(str(device))
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         if model is None:
             if self.model_class is None:
