@@ -287,8 +287,7 @@ class Firefly2DConfig:
                 f"config: ddpg.n_envs={d.n_envs} must be a multiple of "
                 f"ddpg.collector_workers={d.collector_workers}"
             )
-        widths = [isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in d.hidden]
-        if not d.hidden or not all(widths):
+        if not d.hidden or any(h <= 0 for h in d.hidden):  # ints: check_fields saw to it
             raise ValueError(f"config: ddpg.hidden must list positive widths, got {d.hidden}")
         if not 0 <= d.max_grad_norm < math.inf:
             raise ValueError(
@@ -516,7 +515,6 @@ def _first_trials(
     if thetas.ndim != 2 or thetas.shape[0] == 0:
         raise ValueError(f"thetas: expected shape [n ≥ 1, {space.dim}], got {list(thetas.shape)}")
     count("trials_per_theta", trials_per_theta)
-    check_seed("seed", seed)
     batch = thetas.shape[0] * trials_per_theta
     theta = thetas.float().repeat_interleave(trials_per_theta, 0)
     env = TransformedEnv(

@@ -97,9 +97,9 @@ class BoltzmannActionModel(nn.Module):
 
     def __init__(self, q_network: nn.Module, temperature: float = 0.5) -> None:
         super().__init__()
+        temperature = positive_number("temperature", temperature)
         # a frozen copy: the caller's network stays trainable (and leaves this model as it is)
         self.q_network = copy.deepcopy(q_network).requires_grad_(False)
-        temperature = positive_number("temperature", temperature)
         self.nuisance_init = torch.tensor([math.log(temperature)], device="cpu")
 
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
