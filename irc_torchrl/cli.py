@@ -339,8 +339,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_arguments(args: argparse.Namespace) -> None:
-    """Refuse a ``--seed`` outside [0, 2**63) and an ``--out`` that cannot take this command's
-    output (a file, or a folder holding another command's ``summary.json``) before any work."""
+    """Refuse a ``--seed`` outside [0, 2**63), a setting given twice, and an ``--out`` that
+    cannot take this command's output (a file, or a folder holding another command's
+    ``summary.json``) before any work."""
+    _check_settings_once(args)
     if getattr(args, "seed", None) is not None:
         from irc_torchrl.config import SEED_LIMIT
 
@@ -364,6 +366,20 @@ def _check_arguments(args: argparse.Namespace) -> None:
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"
         )
+
+
+def _check_settings_once(args: argparse.Namespace) -> None:
+    """Refuse a ``key=value`` setting whose key the command line gives twice (``units.x=cm
+    units.x=m``): which one was meant is the user's to say, not the order's."""
+    files = [i for i in getattr(args, "files", []) if KEY_VALUE.match(i)]  # irc fit's settings
+    given: dict[str, str] = {}
+    for item in [*files, *getattr(args, "overrides", [])]:
+        if "=" not in item or Path(item).exists():  # a recording's path, for irc fit
+            continue
+        key = item.partition("=")[0].strip()
+        if key in given:
+            raise ValueError(f"{key}: given twice ({given[key]!r} and {item!r}); give it once")
+        given[key] = item
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -106,6 +106,24 @@ def test_seeds_outside_64_bits_exit_2_naming_the_seed(argv, tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["fit", "absent.csv", "units.x=cm", "max_iter=5", "units.x=m"],
+        ["simulate", "n_agents=2", "n_agents = 3"],
+        ["demo", "agents.n_agents=2", "--quiet", "agents.n_agents=3"],
+    ],
+)
+def test_a_setting_given_twice_exits_2_naming_it(argv, tmp_path, capsys):
+    """Two values for one key are refused before any work, not settled by their order."""
+    assert main([*argv, "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    key = argv[-1].partition("=")[0].strip()
+    assert err.startswith(f"irc {argv[0]}: error: {key}: given twice (")
+    assert err.rstrip().endswith("give it once")
+    assert not (tmp_path / "out").exists()
+
+
 def test_flags_and_numbers_take_their_usual_spellings():
     config = load_config(overrides=["flush_denormal=no", "agents.n_agents=7.0", "fit.max_iter=9"])
     assert (config.flush_denormal, config.agents.n_agents, config.fit.max_iter) == (False, 7, 9)
