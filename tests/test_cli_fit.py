@@ -18,6 +18,7 @@ import pytest
 import torch
 from test_checkpoint import TINY as TINY_TRAIN
 
+from irc_torchrl.algorithms import recordings
 from irc_torchrl.algorithms.recordings import format_fit
 from irc_torchrl.cli import build_parser, main
 from irc_torchrl.data.io import read_trials
@@ -325,16 +326,30 @@ def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_
     assert "holds the summary.json of irc demo, which irc demo" in capsys.readouterr().err
 
 
-def test_a_rerun_of_simulate_drops_the_old_summary_before_writing(tmp_path, monkeypatch):
+def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(
+    tmp_path, monkeypatch
+):
+    """Stopped after its first recording, a rerun left that one beside the earlier run's
+    others with no summary: a mixture of two runs' agents. Now nothing of it is left."""
     out = tmp_path / "sim"
-    assert main(["simulate", "--out", str(out), "--quiet", "n_trials=2"]) == 0
+    simulate = ["simulate", "--out", str(out), "--quiet", "n_agents=2", "n_trials=2"]
+    assert main(simulate) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    write = recordings.write_trials
 
-    def fail(*args, **kwargs):
-        raise OSError("disk full")
+    def stopped_at_the_second(trials, path, model):
+        if path.name == "agent1.csv":
+            raise KeyboardInterrupt
+        write(trials, path, model)
 
-    monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", fail)
-    assert main(["simulate", "--out", str(out), "--quiet", "n_trials=2", "--seed", "1"]) == 2
-    assert not (out / "summary.json").exists()  # no truth claimed for what is there
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", stopped_at_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        main([*simulate, "--seed", "1"])
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", write)
+    assert main([*simulate, "--seed", "1"]) == 0
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(after) == sorted(before) and after["agent0.csv"] != before["agent0.csv"]
 
 
 @pytest.mark.parametrize(

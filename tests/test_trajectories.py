@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from irc_torchrl.algorithms.simulate import first_trial_mask, simulate_agents
-from irc_torchrl.data.files import atomic_path, write_json
+from irc_torchrl.data.files import atomic_path, staged, write_json
 from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.envs import Firefly1DModel
 
@@ -111,6 +111,31 @@ def test_atomic_write_leaves_nothing_when_the_writer_fails(tmp_path):
         raise RuntimeError("interrupted")
     assert target.read_text() == '{\n  "a": 1\n}\n'
     assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
+
+
+def test_staged_files_replace_their_namesakes_together_or_not_at_all(tmp_path):
+    """A file or folder staged replaces its namesake (a folder over a folder, a file over a
+    folder) only once the whole block has succeeded; a failure leaves the folder as it was."""
+    (tmp_path / "a.csv").write_text("old a")
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "part").write_text("old b")
+    (tmp_path / "c").mkdir()
+    (tmp_path / "keep.txt").write_text("mine")
+    before = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*"))
+    with pytest.raises(RuntimeError), staged(tmp_path) as staging:
+        (staging / "a.csv").write_text("new a")
+        raise RuntimeError("interrupted")
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == before
+    assert (tmp_path / "a.csv").read_text() == "old a"
+    with staged(tmp_path) as staging:
+        (staging / "a.csv").write_text("new a")
+        (staging / "b").mkdir()
+        (staging / "b" / "other").write_text("new b")
+        (staging / "c").write_text("a file now")
+    assert (tmp_path / "a.csv").read_text() == "new a"
+    assert [p.name for p in (tmp_path / "b").iterdir()] == ["other"]
+    assert (tmp_path / "c").read_text() == "a file now"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b", "c", "keep.txt"]
 
 
 def test_summaries_are_strict_json_with_null_for_numbers_that_are_not_finite(tmp_path):

@@ -40,7 +40,7 @@ from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
-from irc_torchrl.data.files import write_json, write_npz
+from irc_torchrl.data.files import staged, write_json, write_npz
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.data.units import UNITS
@@ -134,19 +134,21 @@ def simulate_recordings(
         simulate_s = time.perf_counter() - start
         agents = []
         earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate") or []]
-        # a summary of an earlier run would claim the true θ of recordings it did not write
-        (out / "summary.json").unlink(missing_ok=True)
-        for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
-            name = f"agent{i}{FORMATS[file_format]}"
-            write_trials(trials[i].select(*TRIAL_KEYS), out / name, model)
-            agents.append(
-                {
-                    "file": name,
-                    "theta_true": space.to_dict(theta[i]),
-                    "n_trials": config.n_trials,
-                    "mean_steps": float(trials[i]["mask"].sum(-1).double().mean()),
-                }
-            )
+        # interrupted while writing, the folder keeps the earlier run's recordings and summary
+        with staged(out) as staging:
+            for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
+                name = f"agent{i}{FORMATS[file_format]}"
+                write_trials(trials[i].select(*TRIAL_KEYS), staging / name, model)
+                agents.append(
+                    {
+                        "file": name,
+                        "theta_true": space.to_dict(theta[i]),
+                        "n_trials": config.n_trials,
+                        "mean_steps": float(trials[i]["mask"].sum(-1).double().mean()),
+                    }
+                )
+            # an earlier run's summary would claim the true θ of recordings it did not write
+            (out / "summary.json").unlink(missing_ok=True)
     summary = {
         "task": TASK,
         "command": "simulate",

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_dir", "atomic_path", "write_json", "write_npz", "write_text"]
+__all__ = ["atomic_dir", "atomic_path", "staged", "write_json", "write_npz", "write_text"]
 
 
 @contextmanager
@@ -38,27 +38,46 @@ def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
 
 @contextmanager
 def atomic_dir(path: str | Path) -> Iterator[Path]:
-    """Yield an empty temporary folder beside ``path``; it replaces ``path`` only on success.
-
-    A folder cannot be renamed over a non-empty one, so an existing ``path`` is first moved
-    aside and removed once the new folder is in place.
-    """
+    """Yield an empty temporary folder beside ``path``; it replaces ``path`` only on success."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's is private (0700), mkdir's is not
-        old = None
-        if path.exists():
-            old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
-            os.replace(path, old / path.name)
-        os.replace(tmp, path)
-        if old is not None:
-            shutil.rmtree(old)
+        _move(tmp, path)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
+
+
+@contextmanager
+def staged(folder: str | Path) -> Iterator[Path]:
+    """Yield an empty temporary folder inside ``folder``; each file or folder written there
+    moves into ``folder`` (replacing its namesake) only if the whole block succeeds, so an
+    interrupted run leaves the set of files the run before it wrote, not a mixture of both."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=folder, prefix=".staged.", suffix=".tmp"))
+    try:
+        yield tmp
+        for entry in sorted(tmp.iterdir()):
+            _move(entry, folder / entry.name)
+    finally:
+        shutil.rmtree(tmp)
+
+
+def _move(source: Path, path: Path) -> None:
+    """Rename ``source`` onto ``path``. A folder cannot be renamed over a non-empty one (nor a
+    file over a folder), so such a ``path`` is first moved aside and removed once ``source``
+    is in place."""
+    old = None
+    if path.exists() and (source.is_dir() or path.is_dir()):
+        old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+        os.replace(path, old / path.name)
+    os.replace(source, path)
+    if old is not None:
+        shutil.rmtree(old)
 
 
 def _umask() -> int:
