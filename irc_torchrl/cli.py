@@ -40,7 +40,9 @@ def _recover(args: argparse.Namespace) -> int:
     return _run_recovery(args.config, overrides, args)
 
 
-def _run_recovery(config_path: str | None, overrides: Sequence[str], args) -> int:
+def _run_recovery(
+    config_path: str | None, overrides: Sequence[str], args: argparse.Namespace
+) -> int:
     from irc_torchrl.algorithms.recover2d import format_recovery, run_recovery
     from irc_torchrl.config import load_recovery2d_config
 

@@ -148,13 +148,19 @@ class ThetaSpace:
 
     # low, high, default and free_mask live on the CPU unless a device is given: a θ space
     # is a description, and its callers move them to their data
-    def low(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
+    def low(
+        self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
+    ) -> torch.Tensor:
         return torch.tensor([p.low for p in self.parameters], dtype=dtype, device=device)
 
-    def high(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
+    def high(
+        self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
+    ) -> torch.Tensor:
         return torch.tensor([p.high for p in self.parameters], dtype=dtype, device=device)
 
-    def default(self, dtype: torch.dtype = torch.float32, device="cpu") -> torch.Tensor:
+    def default(
+        self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
+    ) -> torch.Tensor:
         """θ at every parameter's default, fixed parameters at their fixed values."""
         values = [self.fixed.get(p.name, p.default) for p in self.parameters]
         return torch.tensor(values, dtype=dtype, device=device)
@@ -246,7 +252,7 @@ class ThetaSpace:
         shape: int | Sequence[int] | torch.Size = (),
         generator: torch.Generator | None = None,
         dtype: torch.dtype = torch.float32,
-        device=None,
+        device: torch.device | str | None = None,
     ) -> torch.Tensor:
         """Draw θ from the uniform prior; fixed parameters take their fixed values (on
         ``device``, else the generator's, else the CPU). An int ``shape`` is a 1-D shape."""
@@ -257,7 +263,11 @@ class ThetaSpace:
         mask = self.free_mask.to(device)
         return torch.where(mask, theta, self.default(dtype, device))
 
-    def spec(self, batch_shape: int | Sequence[int] | torch.Size = (), device=None) -> Bounded:
+    def spec(
+        self,
+        batch_shape: int | Sequence[int] | torch.Size = (),
+        device: torch.device | str | None = None,
+    ) -> Bounded:
         """TorchRL's spec of θ with the given leading batch dimensions (an int is 1-D)."""
         shape = torch.Size([*_shape("spec: batch_shape", batch_shape), self.dim])
         return Bounded(

@@ -29,7 +29,7 @@ __all__ = ["run_demo", "dp_comparison", "format_summary"]
 
 def dp_comparison(
     model: Firefly1DModel, q_network: torch.nn.Module, n_grid: int = 5, n_starts: int = 49
-):
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Learned greedy return against the DP optimum on a θ grid over the free parameters."""
     space = model.theta_space
     axes = [

@@ -7,6 +7,8 @@ that lattice gives the optimal value for any θ and start exactly, with no grid 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from irc_torchrl.envs.belief import ekf_predict
@@ -62,7 +64,10 @@ def optimal_values(
 
 
 def greedy_returns(
-    model: Firefly1DModel, q_values, theta: torch.Tensor, relative_start: torch.Tensor
+    model: Firefly1DModel,
+    q_values: Callable[[torch.Tensor], torch.Tensor],
+    theta: torch.Tensor,
+    relative_start: torch.Tensor,
 ) -> torch.Tensor:
     """Expected return ``[n_theta, n_start]`` of acting greedily on ``q_values(features)``.
 

@@ -25,6 +25,7 @@ import torch
 import yaml
 from scipy.stats import chi2
 from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
 from tqdm.auto import tqdm
 
 from irc_torchrl.algorithms.calibration import (
@@ -175,7 +176,7 @@ class Recovery2DConfig:
 
 def simulate_recovery_agents(
     model: Firefly2DModel,
-    actor,
+    actor: TensorDictSequential,
     config: Recovery2DConfig,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
@@ -207,7 +208,7 @@ def simulate_recovery_agents(
 
 def predicted_widths(
     model: Firefly2DModel,
-    actor,
+    actor: TensorDictSequential,
     n_trials: tuple[int, ...] = (100,),
     n_agents: int = 20,
     seed: int = 0,
@@ -237,7 +238,7 @@ def predicted_widths(
 
 
 def _recovery_action_model(
-    config: Recovery2DConfig, actor, model: Firefly2DModel
+    config: Recovery2DConfig, actor: TensorDictSequential, model: Firefly2DModel
 ) -> CensoredGaussianActionModel:
     """The action model the recovery fits with: the agents' lapse rate held, or with
     ``fit_lapse`` fitted from where ``irc fit`` starts it (not the agents' own rate)."""
@@ -247,7 +248,9 @@ def _recovery_action_model(
     )
 
 
-def belief_agreement(recovered: torch.Tensor, true: torch.Tensor, state: torch.Tensor, mask):
+def belief_agreement(
+    recovered: torch.Tensor, true: torch.Tensor, state: torch.Tensor, mask: torch.Tensor
+) -> dict[str, float]:
     """How well recovered belief means match the agents' own, over recorded steps.
 
     Returns the correlation of believed positions (x and y pooled), and the correlation of the
@@ -393,7 +396,7 @@ def _fit_methods(
 def _calibrate(
     config: Recovery2DConfig,
     model: Firefly2DModel,
-    actor,
+    actor: TensorDictSequential,
     action_model: CensoredGaussianActionModel,
     held: TensorDict,
     result: FitResult,

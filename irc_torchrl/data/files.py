@@ -88,6 +88,7 @@ def _umask() -> int:
 
 
 def write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` into ``path`` atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
     return Path(path)

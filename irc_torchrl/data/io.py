@@ -18,6 +18,7 @@ import warnings
 import zipfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import torch
@@ -337,7 +338,7 @@ def _check_memmap_sizes(path: Path) -> None:
             )
 
 
-def nwb_module():
+def nwb_module() -> ModuleType:
     """The NWB reader/writer, or an ImportError that says how to install pynwb."""
     try:
         nwb = importlib.import_module("irc_torchrl.data.nwb")

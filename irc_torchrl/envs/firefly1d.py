@@ -86,15 +86,21 @@ class Firefly1DModel(TaskModel):
         """The step direction ``[*B, 1]`` (-1, 0, +1) of an action index."""
         return (action.long() - STOP).unsqueeze(-1)
 
-    def initial_state(self, theta, generator):
+    def initial_state(
+        self, theta: torch.Tensor, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         batch = theta.shape[:-1]
         u = torch.rand(*batch, 1, generator=generator, device=theta.device, dtype=theta.dtype)
         return torch.zeros_like(u), self.target_range * (2 * u - 1)
 
-    def transition(self, state, action, theta):
+    def transition(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         return state + self._theta(theta, "g_a") * self.move(action).to(state.dtype)
 
-    def transition_jacobian(self, state, action, theta):
+    def transition_jacobian(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         return torch.ones(
             *torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]),
             1,
@@ -103,29 +109,48 @@ class Firefly1DModel(TaskModel):
             device=state.device,
         )
 
-    def process_cov(self, state, action, theta):
+    def process_cov(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         var = torch.exp(2 * self._theta(theta, "log_sigma0"))
         return var.expand(*torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]), 1).unsqueeze(
             -1
         )
 
-    def stops(self, action, step):
+    def stops(self, action: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
         return (action == STOP).unsqueeze(-1)
 
-    def reward(self, state, target, action, stop, theta):
+    def reward(
+        self,
+        state: torch.Tensor,
+        target: torch.Tensor,
+        action: torch.Tensor,
+        stop: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
         inside = ((state - target).abs() < self._theta(theta, "goal_radius")).to(state.dtype)
         return torch.where(stop, self.reward_value * inside, -self._theta(theta, "move_cost"))
 
     #: the agent knows where it starts, up to this variance (positive, so σ stays differentiable)
     initial_variance = 1e-4
 
-    def initial_belief(self, state, target, theta):
+    def initial_belief(
+        self, state: torch.Tensor, target: torch.Tensor, theta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         cov = torch.full(
             (*state.shape, 1), self.initial_variance, dtype=state.dtype, device=state.device
         )
         return state.clone(), cov
 
-    def belief_reward(self, mean, cov, target, action, stop, theta):
+    def belief_reward(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        target: torch.Tensor,
+        action: torch.Tensor,
+        stop: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
         p = gaussian_interval_probability(
             mean - target, cov[..., 0].sqrt(), self._theta(theta, "goal_radius")
         )
@@ -133,7 +158,14 @@ class Firefly1DModel(TaskModel):
 
     belief_feature_dim = 5
 
-    def belief_features(self, mean, cov, target, step, theta):
+    def belief_features(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        target: torch.Tensor,
+        step: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
         """Relative position and its size, spread, time, and the belief's goal probability."""
         relative = mean - target
         std = cov[..., 0].clamp_min(0).sqrt()

@@ -193,7 +193,9 @@ class Firefly2DModel(TaskModel):
         return theta[..., i : i + 1]
 
     # --- world ---------------------------------------------------------------------------
-    def initial_state(self, theta, generator):
+    def initial_state(
+        self, theta: torch.Tensor, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         batch, kw = theta.shape[:-1], {"dtype": theta.dtype, "device": theta.device}
         u = torch.rand(*batch, 2, generator=generator, **kw)
         lo, hi = self.target_distance
@@ -202,7 +204,9 @@ class Firefly2DModel(TaskModel):
         target = torch.cat([distance * angle.cos(), distance * angle.sin()], -1)
         return torch.zeros(*batch, self.state_dim, **kw), target
 
-    def transition(self, state, action, theta):
+    def transition(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         x, y, phi, v, w = state.unbind(-1)
         dt = self.dt
         pose = torch.stack([x + v * phi.cos() * dt, y + v * phi.sin() * dt, phi + w * dt], -1)
@@ -211,7 +215,9 @@ class Firefly2DModel(TaskModel):
         batch = _batch(pose.shape[:-1], velocity.shape[:-1])
         return torch.cat([pose.expand(*batch, 3), velocity.expand(*batch, 2)], -1)
 
-    def transition_jacobian(self, state, action, theta):
+    def transition_jacobian(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         phi, v = state[..., PHI], state[..., V]
         batch = _batch(state.shape[:-1], theta.shape[:-1], action.shape[:-1])
         jac = torch.zeros(*batch, 5, 5, dtype=state.dtype, device=state.device)
@@ -226,31 +232,33 @@ class Firefly2DModel(TaskModel):
         jac[..., PHI, W] = dt
         return jac
 
-    def process_cov(self, state, action, theta):
+    def process_cov(
+        self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
         pos = self._theta(theta, "sigma_pos") ** 2
         vel = torch.cat([self._theta(theta, "sigma_v"), self._theta(theta, "sigma_w")], -1) ** 2
         var = torch.cat([pos, pos, torch.zeros_like(pos), vel], -1) + NOISE_FLOOR**2
         return torch.diag_embed(var.expand(*_batch(state.shape[:-1], var.shape[:-1]), 5))
 
-    def observe(self, state, theta):
+    def observe(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         return state[..., V : W + 1]
 
-    def observation_jacobian(self, state, theta):
+    def observation_jacobian(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         batch = _batch(state.shape[:-1], theta.shape[:-1])
         jac = torch.zeros(*batch, 2, 5, dtype=state.dtype, device=state.device)
         jac[..., 0, V] = 1
         jac[..., 1, W] = 1
         return jac
 
-    def observation_cov(self, state, theta):
+    def observation_cov(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         std = torch.cat([self._theta(theta, "obs_sigma_v"), self._theta(theta, "obs_sigma_w")], -1)
         var = std**2 + NOISE_FLOOR**2
         return torch.diag_embed(var.expand(*_batch(state.shape[:-1], var.shape[:-1]), 2))
 
-    def stops(self, action, step):
+    def stops(self, action: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
         return (action[..., :1] < self.stop_threshold) & (step >= self.min_steps)
 
-    def scored_actions(self, action, step):
+    def scored_actions(self, action: torch.Tensor, step: torch.Tensor) -> torch.Tensor | None:
         """On stopping, the angular control moves nothing: only the stop itself is scored.
 
         It matters: at the target the bearing, and with it the actor's angular output, turns
@@ -264,17 +272,34 @@ class Firefly2DModel(TaskModel):
         effort = (action.to(theta.dtype) ** 2).sum(-1, keepdim=True)
         return self._theta(theta, "effort_cost") * effort
 
-    def reward(self, state, target, action, stop, theta):
+    def reward(
+        self,
+        state: torch.Tensor,
+        target: torch.Tensor,
+        action: torch.Tensor,
+        stop: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
         distance = (state[..., :2] - target).norm(dim=-1, keepdim=True)
         inside = distance < self._theta(theta, "goal_radius")
         return self.reward_value * (stop & inside).to(state.dtype) - self.effort(action, theta)
 
     # --- agent ---------------------------------------------------------------------------
-    def initial_belief(self, state, target, theta):
+    def initial_belief(
+        self, state: torch.Tensor, target: torch.Tensor, theta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         eye = torch.eye(self.state_dim, dtype=state.dtype, device=state.device)
         return state.clone(), (NOISE_FLOOR**2 * eye).expand(*state.shape, self.state_dim).clone()
 
-    def belief_reward(self, mean, cov, target, action, stop, theta):
+    def belief_reward(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        target: torch.Tensor,
+        action: torch.Tensor,
+        stop: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
         p = disc_probability(
             mean[..., :2] - target, cov[..., :2, :2], self._theta(theta, "goal_radius")
         )
@@ -282,7 +307,14 @@ class Firefly2DModel(TaskModel):
 
     belief_feature_dim = 14
 
-    def belief_features(self, mean, cov, target, step, theta):
+    def belief_features(
+        self,
+        mean: torch.Tensor,
+        cov: torch.Tensor,
+        target: torch.Tensor,
+        step: torch.Tensor,
+        theta: torch.Tensor,
+    ) -> torch.Tensor:
         """Egocentric target, distance, bearing, velocities, uncertainty, time; then θ.
 
         Positions are in units of the farthest target; velocities in units of the agent's
