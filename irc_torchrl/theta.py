@@ -127,14 +127,17 @@ class ThetaSpace:
 
     @property
     def names(self) -> list[str]:
+        """Every parameter's name, in θ's order."""
         return [p.name for p in self.parameters]
 
     @property
     def dim(self) -> int:
+        """How many parameters θ holds, fixed ones included."""
         return len(self.parameters)
 
     @property
     def free_names(self) -> list[str]:
+        """The names of the parameters not fixed, in θ's order."""
         return [n for n in self.names if n not in self.fixed]
 
     @property
@@ -143,6 +146,7 @@ class ThetaSpace:
         return torch.tensor([n not in self.fixed for n in self.names], device="cpu")
 
     def index(self, name: str) -> int:
+        """Where ``name`` sits in θ (a KeyError listing the valid names otherwise)."""
         self[name]
         return self._index[name]
 
@@ -151,11 +155,13 @@ class ThetaSpace:
     def low(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
     ) -> torch.Tensor:
+        """The prior's lower bounds, ``[d]``."""
         return torch.tensor([p.low for p in self.parameters], dtype=dtype, device=device)
 
     def high(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
     ) -> torch.Tensor:
+        """The prior's upper bounds, ``[d]``."""
         return torch.tensor([p.high for p in self.parameters], dtype=dtype, device=device)
 
     def default(
