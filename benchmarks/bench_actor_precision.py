@@ -5,7 +5,8 @@ step) need not. This prints the wall time of one gradient pass (values and per-t
 what each BFGS iteration costs) over 1, 2 and 16 rows of 100 trials with each actor, their
 ratio, and how far the float32 actor moves the log-likelihood and its gradient.
 
-Run: ``python benchmarks/bench_actor_precision.py [--trials 100] [--threads 2] [--repeats 3]``.
+Run: ``python benchmarks/bench_actor_precision.py [--trials 100] [--threads 2] [--repeats 3]
+[--seed 0]``.
 """
 
 from __future__ import annotations
@@ -29,14 +30,15 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0, help="seed of θ and trials")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     actor, model, _ = load_ensemble_policy("firefly2d")
     spec, space = model.action_spec, model.theta_space
     n = max(ROWS)
-    theta = space.sample((n,), generator=torch.Generator().manual_seed(0))
+    theta = space.sample((n,), generator=torch.Generator().manual_seed(args.seed))
     policy = motor_noise_policy(actor, spec, 0.1)
-    trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
+    trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=args.seed + 1)
     trials = trials.select("state", "action", "target", "mask", "task_theta")
     free = space.free_mask
     k = int(free.sum())

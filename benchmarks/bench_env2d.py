@@ -8,7 +8,7 @@ Three paths over the same math, side by side, for N = 1, 64, 1024, 4096 environm
 the best of ``--repeats`` runs. Prints a table and, at N = 1024, the ratios torchrl/plain
 (goal ≥ 0.6) and torchrl/gymnasium (goal ≥ 10), all measured in the same run.
 
-Run: ``python benchmarks/bench_env2d.py [--quick] [--threads 1] [--repeats 3]``.
+Run: ``python benchmarks/bench_env2d.py [--quick] [--threads 1] [--repeats 3] [--seed 0]``.
 """
 
 from __future__ import annotations
@@ -42,9 +42,11 @@ def make_actor(model: Firefly2DModel) -> torch.nn.Module:
     return torch.nn.Sequential(net, torch.nn.Tanh())
 
 
-def torchrl_rate(n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel) -> float:
+def torchrl_rate(
+    n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel, seed: int
+) -> float:
     """Env-steps/s of ``env.rollout`` with the EKF transform and a features + MLP policy."""
-    env = TransformedEnv(Firefly2DEnv(batch_size=(n,), model=model, seed=0), EKFBelief(model))
+    env = TransformedEnv(Firefly2DEnv(batch_size=(n,), model=model, seed=seed), EKFBelief(model))
     policy = TensorDictSequential(
         BeliefFeatures(model), TensorDictModule(actor, in_keys=["features"], out_keys=["action"])
     )
@@ -55,9 +57,11 @@ def torchrl_rate(n: int, steps: int, actor: torch.nn.Module, model: Firefly2DMod
         return n * steps / (time.perf_counter() - start)
 
 
-def plain_rate(n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel) -> float:
+def plain_rate(
+    n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel, seed: int
+) -> float:
     """Env-steps/s of a torch loop doing the same math: world, noise, filter, features, actor."""
-    rng = torch.Generator().manual_seed(0)
+    rng = torch.Generator().manual_seed(seed)
 
     def noise(cov: torch.Tensor) -> torch.Tensor:
         chol = torch.linalg.cholesky(cov.double()).to(cov.dtype)
@@ -109,10 +113,10 @@ def plain_rate(n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel
         return n * steps / (time.perf_counter() - start)
 
 
-def gym_rate(n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel) -> float:
+def gym_rate(n: int, steps: int, actor: torch.nn.Module, model: Firefly2DModel, seed: int) -> float:
     """Env-steps/s of gymnasium's ``SyncVectorEnv`` over the adapter, actor on the batch."""
     envs = gym.vector.SyncVectorEnv([lambda: Firefly2DGymEnv(model=model) for _ in range(n)])
-    obs, _ = envs.reset(seed=0)
+    obs, _ = envs.reset(seed=seed)
     with torch.no_grad():
         start = time.perf_counter()
         for _ in range(steps):
@@ -128,10 +132,11 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer steps, gymnasium to N=1024")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the actor, θ and noise")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.set_flush_denormal(True)
-    torch.manual_seed(0)
+    torch.manual_seed(args.seed)
     model = Firefly2DModel()
     actor = make_actor(model)
     sizes = [1, 64, 1024, 4096]
@@ -149,9 +154,9 @@ def main() -> None:
     for n in sizes:
         t = p = 0.0
         for _ in range(args.repeats):  # interleaved, so that load changes hit both paths
-            t = max(t, torchrl_rate(n, steps[n], actor, model))
-            p = max(p, plain_rate(n, steps[n], actor, model))
-        g = gym_rate(n, gym_steps[n], actor, model) if n in gym_steps else float("nan")
+            t = max(t, torchrl_rate(n, steps[n], actor, model, args.seed))
+            p = max(p, plain_rate(n, steps[n], actor, model, args.seed))
+        g = gym_rate(n, gym_steps[n], actor, model, args.seed) if n in gym_steps else float("nan")
         rows[n] = (t, p, g)
         print(f"{n:>6} {t:>12,.0f} {p:>12,.0f} {g:>12,.0f}", flush=True)
     t, p, g = rows[1024]

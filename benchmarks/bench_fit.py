@@ -10,7 +10,8 @@ runs with ``irc recover``'s settings (``--max-iter 80`` for its iteration limit)
 (``fit_theta(workers=W)``), beside the one-process call.
 
 Run: ``python benchmarks/bench_fit.py [--task firefly1d|firefly2d] [--method map|marginal]
-[--agents 20] [--trials 100] [--max-iter 40] [--actor-dtype float32|float64] [--workers 2]``.
+[--agents 20] [--trials 100] [--max-iter 40] [--actor-dtype float32|float64] [--workers 2]
+[--seed 0]``.
 """
 
 from __future__ import annotations
@@ -32,12 +33,12 @@ from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 
-def _task(name: str, actor_dtype: str):
+def _task(name: str, actor_dtype: str, seed: int):
     """``(model, policy, action_model, fit settings)`` of a task (the 2D actor in ``actor_dtype``
     inside the likelihood)."""
     if name == "firefly1d":
         model = Firefly1DModel()
-        q = train_factorised_q(model, seed=0)
+        q = train_factorised_q(model, seed=seed)
         return model, boltzmann_policy(model, q, 0.5), BoltzmannActionModel(q, 0.5), {}
     actor, model, _ = load_ensemble_policy("firefly2d")
     action_model = censored_action_model(actor, model, actor_dtype)
@@ -56,17 +57,20 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--actor-dtype", choices=sorted(ACTOR_DTYPES), default="float32")
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0, help="seed of θ, trials and fits")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    model, policy, action_model, settings = _task(args.task, args.actor_dtype)
+    model, policy, action_model, settings = _task(args.task, args.actor_dtype, args.seed)
     space = model.theta_space
-    theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(0))
-    trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
+    theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(args.seed))
+    trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=args.seed + 1)
     trials = trials.select("state", "action", "target", "mask", "task_theta")
 
     def fit(rows, workers=1):
         loss = InverseRationalLoss(model, action_model, n_agents=rows.shape[0], method=args.method)
-        return fit_theta(loss, rows, max_iter=args.max_iter, seed=0, workers=workers, **settings)
+        return fit_theta(
+            loss, rows, max_iter=args.max_iter, seed=args.seed, workers=workers, **settings
+        )
 
     start = time.perf_counter()
     batched = fit(trials)

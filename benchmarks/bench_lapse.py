@@ -7,7 +7,8 @@ the median relative error of each free parameter, the fraction of fits converged
 fitted motor noise per action dimension, the fitted lapse rates' range, the agents' mean trial
 length (a lapse of the forward control often stops a trial) and the time, side by side.
 
-Run: ``python benchmarks/bench_lapse.py [--quick] [--agents 8] [--trials 100] [--threads 2]``
+Run: ``python benchmarks/bench_lapse.py [--quick] [--agents 8] [--trials 100] [--threads 2]
+[--seed 0]``
 (``--quick``: the three pairs of :data:`QUICK_PAIRS`, 4 agents × 40 trials, a few minutes).
 """
 
@@ -48,6 +49,7 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=None, help="default 8 (4 with --quick)")
     parser.add_argument("--trials", type=int, default=None, help="default 100 (40 with --quick)")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0, help="seed of θ, trials and fits")
     args = parser.parse_args()
     if args.agents is None:
         args.agents = 4 if args.quick else 8
@@ -57,12 +59,14 @@ def main() -> None:
     actor, model, _ = load_ensemble_policy("firefly2d")
     space = model.theta_space
     free = space.free_mask
-    theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(0))
+    theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(args.seed))
     print(f"{args.agents} agents × {args.trials} trials, marginal, every parameter free")
     print(f"{'agents':>6} {'fit':>5}  median relative error ({', '.join(space.free_names)})")
     for agents_lapse, fit_lapse in QUICK_PAIRS if args.quick else PAIRS:
         policy = motor_noise_policy(actor, model.action_spec, 0.1, agents_lapse)
-        trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=1)
+        trials = simulate_agents(
+            model, policy, theta, args.trials, space.default(), seed=args.seed + 1
+        )
         held = trials.select("state", "action", "target", "mask", "task_theta")
         fitted = fit_lapse == "fit"
         action_model = censored_action_model(
@@ -71,7 +75,7 @@ def main() -> None:
         loss = InverseRationalLoss(model, action_model, n_agents=args.agents, method="marginal")
         start = time.perf_counter()
         result = fit_theta(
-            loss, held, n_screen=16, n_starts=2, max_iter=80, seed=0, curvature="bfgs",
+            loss, held, n_screen=16, n_starts=2, max_iter=80, seed=args.seed, curvature="bfgs",
             covariance="sandwich",
         )  # fmt: skip
         seconds = time.perf_counter() - start
