@@ -103,6 +103,9 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
         assert 0 < low < std < high
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
+    # uncalibrated intervals say so, and how to calibrate them
+    assert "95% intervals from the likelihood's curvature alone, not calibrated" in table
+    assert "(docs/recovery2d.md); calibrate=2 calibrates them by simulation" in table
     # irc fit's default, for recordings of real agents: the lapse rate fitted, from 0.01; this
     # agent never lapses, and its rate falls (measured: 0.0030, interval up to 0.022)
     assert summary["config"]["lapse"] == 0.01 and summary["config"]["fit_lapse"]
@@ -150,6 +153,7 @@ def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulate
         assert agent["calibrated"]["std"][name] == pytest.approx(factor * agent["std"][name])
     table = format_fit(summary)
     assert "calibrated 95% CI" in table and "intervals calibrated on 1 simulated" in table
+    assert "not calibrated" not in table
     assert "rests on 1 refit(s) only; about 40 pin a 95% quantile: calibrate=40)" in table
     assert "truth inside the calibrated 95% interval" in table
 

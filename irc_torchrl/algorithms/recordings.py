@@ -670,6 +670,12 @@ def format_fit(summary: dict[str, Any]) -> str:
                 f"{method}: intervals calibrated on {calibration['n_datasets']} simulated "
                 f"dataset(s) per recording, scaled by {format_factors(calibration)}"
             )
+        else:
+            lines.append(
+                f"{method}: 95% intervals from the likelihood's curvature alone, not calibrated: "
+                "on simulated agents such intervals hold the truth less often than 95% "
+                "(docs/recovery2d.md); calibrate=2 calibrates them by simulation"
+            )
         for key, what in (("parameters", ""), ("calibrated_parameters", "calibrated ")):
             if key in part:
                 covered = ", ".join(f"{n} {s['coverage']:.2f}" for n, s in part[key].items())
