@@ -81,7 +81,8 @@ class FitConfig:
     #: "hessian" (exact Newton), "fisher" (Fisher scoring far from θ̂, Newton near it) or
     #: "bfgs" (Fisher scoring far from θ̂, BFGS near it: no second derivatives until θ̂)
     curvature: str = "hessian"
-    #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
+    #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹;
+    #: it needs at least as many trials per agent as fitted coordinates)
     covariance: str = "hessian"
     #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
     intervals: str = "wald"
@@ -181,7 +182,8 @@ class RecordingFitConfig:
     fit_lapse: bool = True
     #: how the iterations measure curvature (see ``fit.curvature`` of ``irc recover``)
     curvature: str = "bfgs"
-    #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹)
+    #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹;
+    #: it needs at least as many trials per recording as fitted coordinates)
     covariance: str = "hessian"
     #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
     intervals: str = "wald"

@@ -371,6 +371,13 @@ def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch
     monkeypatch.setattr(loss, "log_likelihood_and_draws", no_work)
     with pytest.raises(ValueError, match="curvature: expected one of"):
         fit_theta(loss, held, curvature="newton")
+    # 3 trials cannot estimate the spread of 10 coordinates' scores
+    with pytest.raises(
+        ValueError,
+        match=r"covariance: 'sandwich' needs at least as many trials per agent as fitted "
+        r"coordinates \(10: 8 of θ, 2 nuisance\); agent 0 has 3: use covariance='hessian'",
+    ):
+        fit_theta(loss, held, covariance="sandwich")
     with pytest.raises(ValueError, match=r"starts: expected one θ per agent, \[1, 9\]"):
         fit_theta(loss, held, starts=model.theta_space.default().expand(2, -1))
     outside = model.theta_space.default().clone()

@@ -44,6 +44,7 @@ __all__ = [
     "CURVATURES",
     "INTERVALS",
     "FitResult",
+    "check_sandwich",
     "expected_intervals",
     "fit_theta",
     "particle_check",
@@ -223,6 +224,8 @@ def fit_theta(
     n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
     k = int(free.sum())
+    if covariance == "sandwich":
+        check_sandwich(trials["mask"].any(-1).sum(-1), k, loss.action_model.nuisance_init.numel())
     bounded = loss.bounded.to(device)
     if starts is not None:
         starts = space.validate(starts, "starts").double()
@@ -413,6 +416,21 @@ def fit_theta(
     if intervals == "profile":
         result = dataclasses.replace(result, intervals=profile_intervals(loss, trials, result))
     return result
+
+
+def check_sandwich(per_agent: torch.Tensor, k: int, n_nuisance: int) -> None:
+    """Refuse the sandwich covariance where an agent has fewer trials (``per_agent``, ``[A]``)
+    than fitted coordinates (``k`` of θ, ``n_nuisance``): its middle, one outer product of
+    scores per trial, is then singular, and the intervals would claim some combination of the
+    parameters known exactly."""
+    fewest = int(per_agent.min())
+    if fewest < k + n_nuisance:
+        agent = int(per_agent.argmin())
+        raise ValueError(
+            f"covariance: 'sandwich' needs at least as many trials per agent as fitted "
+            f"coordinates ({k + n_nuisance}: {k} of θ, {n_nuisance} nuisance); agent {agent} "
+            f"has {fewest}: use covariance='hessian'"
+        )
 
 
 def expected_intervals(

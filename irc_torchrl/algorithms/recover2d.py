@@ -39,6 +39,7 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import (
     FitResult,
+    check_sandwich,
     expected_intervals,
     fit_theta,
     particle_check,
@@ -279,6 +280,10 @@ def recover_firefly2d(
     config.validate()
     actor, model, _ = load_ensemble_policy(config.checkpoint, resolve_device(config.device))
     space = model.theta_space
+    action_model = _recovery_action_model(config, actor, model)
+    if config.fit.covariance == "sandwich":
+        n_nuisance = action_model.nuisance_init.numel()
+        check_sandwich(torch.tensor([config.n_trials]), len(space.free_names), n_nuisance)
     start = time.perf_counter()
     trials, theta_true, mistaken = simulate_recovery_agents(
         model, actor, config, None if progress is None else partial(progress, "simulate")
@@ -286,7 +291,6 @@ def recover_firefly2d(
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
     n_agents = theta_true.shape[0]
-    action_model = _recovery_action_model(config, actor, model)
     summary: dict = {
         "task": config.task,
         "seed": config.seed,
