@@ -225,7 +225,8 @@ def plot_estimates(summary: dict, path: str | Path, units: Mapping[str, str] | N
 def _recorded(arrays: Mapping[str, np.ndarray], trial: int) -> dict[str, np.ndarray]:
     """One trial's recorded steps of the belief arrays (see ``beliefs.npz``)."""
     keep = arrays["mask"][trial].astype(bool)
-    return {k: v[trial][keep] for k, v in arrays.items() if k not in ("mask", "trial")}
+    per_trial = ("mask", "trial", "trial_log_likelihood")  # no step axis to select
+    return {k: v[trial][keep] for k, v in arrays.items() if k not in per_trial}
 
 
 def _trial_name(arrays: Mapping[str, np.ndarray], row: int) -> str:

@@ -119,6 +119,37 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     assert f"particle check: the likelihood's approximation is {gap:.1f} nats below" in table
 
 
+def test_fit_names_the_trials_its_theta_explains_worst(simulated, tmp_path):
+    """A trial whose turning commands were flipped (an export glitch) heads the list of the
+    trials θ̂ explains worst, by its own trial number; beliefs.npz holds every trial's
+    log-likelihood, which add up to the fit's."""
+    lines = (simulated / "agent0.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    trial, a_w = header.index("trial"), header.index("a_w")
+    rows = []
+    for line in lines[1:]:
+        cells = line.split(",")
+        if cells[trial] == "7":
+            cells[a_w] = repr(-float(cells[a_w]))
+        rows.append(",".join(cells))
+    (tmp_path / "glitch.csv").write_text("\n".join([lines[0], *rows]) + "\n")
+    out = tmp_path / "fit"
+    settings = ["--quiet", "--method", "map", "--free", "g_v", "max_iter=5", "n_screen=2"]
+    assert main(["fit", str(tmp_path / "glitch.csv"), "--out", str(out), *settings]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    (agent,) = summary["agents"]
+    worst = agent["worst_trials"]
+    assert [w["trial"] for w in worst][0] == 7.0 and len(worst) == 3
+    assert [w["per_step"] for w in worst] == sorted(w["per_step"] for w in worst)
+    assert worst[0]["per_step"] < worst[0]["median_per_step"] - 1
+    assert worst[0]["per_step"] == pytest.approx(worst[0]["log_likelihood"] / worst[0]["steps"])
+    with np.load(out / "beliefs.npz") as beliefs:
+        per_trial = beliefs["glitch/trial_log_likelihood"]
+    assert per_trial.shape == (20,)
+    assert per_trial.sum() == pytest.approx(agent["log_likelihood"], rel=1e-6)
+    assert "trials explained worst, log-likelihood per step" in format_fit(summary)
+
+
 def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulated, tmp_path):
     # calibrate=1: a recording simulated at θ̂ and refitted; each interval is the fit's own
     # scaled about θ̂ (in the fit's coordinates) by its parameter's factor

@@ -336,7 +336,7 @@ def fit_recordings(
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
-        fits, beliefs, timings, checks = _fit_groups(
+        fits, beliefs, timings, checks, per_trial = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress
         )
         calibrations = {}
@@ -353,6 +353,11 @@ def fit_recordings(
         name: _scored(space, action_model, result, truths, paths, labels, recordings, checks[name])
         for name, result in fits.items()
     }
+    for name, part in by_method.items():
+        for agent, recording, values in zip(
+            part["agents"], recordings, per_trial[name], strict=True
+        ):
+            agent["worst_trials"] = _worst_trials(recording, values)
     for name, calibration in calibrations.items():
         _add_calibrated(by_method[name], space, calibration, fits[name], truths)
     primary = "marginal" if method in ("marginal", "both") else "map"
@@ -377,7 +382,7 @@ def fit_recordings(
     summary["state_names"] = list(model.state_names)
     summary["state_units"] = [_in_metres(unit, config.units) for unit in model.state_units]
     earlier = _earlier_agents(out, "fit")
-    _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs)
+    _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs, per_trial[primary])
     write_json(out / "summary.json", summary)
     written = {path.name for path in report_run(out)}
     if earlier is not None:  # an earlier fit's figures this one did not draw again
@@ -411,19 +416,22 @@ def _fit_groups(
     seed: int,
     device: torch.device,
     progress: bool,
-) -> tuple[dict[str, FitResult], list[TensorDict], dict[str, float], dict[str, list]]:
+) -> tuple[
+    dict[str, FitResult], list[TensorDict], dict[str, float], dict[str, list], dict[str, list]
+]:
     """Fit every recording, batching those with equal trial counts; per method and per file.
 
     Returns the fit per method (agents in the order of ``recordings``), each recording's
-    beliefs under the primary method's θ̂ (``[n_trials, T]``), the time of each method and,
-    with ``config.particles``, each recording's :func:`particle_check` at θ̂ per method
-    (``None`` without).
+    beliefs under the primary method's θ̂ (``[n_trials, T]``), the time of each method,
+    with ``config.particles`` each recording's :func:`particle_check` at θ̂ per method
+    (``None`` without), and per method each recording's log-likelihood per trial at θ̂.
     """
     groups = _by_trial_count(recordings)
     methods = ["map"] if method == "map" else ["map", "marginal"]
     parts: dict[str, list[tuple[list[int], FitResult]]] = {m: [] for m in methods}
     beliefs: list[TensorDict | None] = [None] * len(recordings)
     checks: dict[str, list] = {m: [None] * len(recordings) for m in methods}
+    per_trial: dict[str, list] = {m: [None] * len(recordings) for m in methods}
     timings = {f"fit_{m}_s": 0.0 for m in methods}
     for members in groups.values():
         steps = max(recordings[i].shape[1] for i in members)
@@ -455,6 +463,10 @@ def _fit_groups(
                 )
             starts = result.theta_hat
             parts[name].append((members, result))
+            with torch.no_grad():
+                values = loss.log_likelihood(result.theta_hat, result.nuisance, held, True)
+            for j, i in enumerate(members):
+                per_trial[name][i] = values[j].cpu()
             if name == methods[-1]:
                 recovered = loss.recovered_beliefs(result.theta_hat, result.nuisance, held).cpu()
                 for j, i in enumerate(members):
@@ -476,7 +488,25 @@ def _fit_groups(
         rank = torch.tensor(order).argsort()
         fits[name] = combined.select(rank)
     timings["fit_s"] = sum(v for k, v in timings.items() if k.startswith("fit_"))
-    return fits, beliefs, timings, checks
+    return fits, beliefs, timings, checks, per_trial
+
+
+def _worst_trials(recording: TensorDict, log_likelihood: torch.Tensor, n: int = 3) -> list[dict]:
+    """The ``n`` trials whose actions θ̂ explains worst, by log-likelihood per recorded step
+    (a tracking glitch, a trial the agent gave up on), each with its own trial number."""
+    steps = recording["mask"].sum(-1).double()
+    per_step = log_likelihood.double() / steps
+    worst = per_step.argsort()[:n]
+    return [
+        {
+            "trial": float(recording["trial"][i, 0]),
+            "log_likelihood": float(log_likelihood[i]),
+            "steps": int(steps[i]),
+            "per_step": float(per_step[i]),
+            "median_per_step": float(per_step.median()),
+        }
+        for i in worst.tolist()
+    ]
 
 
 def _calibrate_fits(
@@ -593,9 +623,12 @@ def _scored(
     return scored
 
 
-def _belief_arrays(recording: TensorDict, belief: TensorDict) -> dict[str, np.ndarray]:
+def _belief_arrays(
+    recording: TensorDict, belief: TensorDict, log_likelihood: torch.Tensor
+) -> dict[str, np.ndarray]:
     """What the belief figures and ``beliefs.npz`` hold for one recording."""
     return {
+        "trial_log_likelihood": log_likelihood.double().numpy(),
         "trial": recording["trial"][:, 0].numpy(),  # the recording's own trial numbers
         "time": recording["time"].numpy(),
         "mask": recording["mask"].numpy(),
@@ -608,13 +641,19 @@ def _belief_arrays(recording: TensorDict, belief: TensorDict) -> dict[str, np.nd
 
 
 def _write_beliefs(
-    path: Path, labels: list[str], recordings: list[TensorDict], beliefs: list[TensorDict]
+    path: Path,
+    labels: list[str],
+    recordings: list[TensorDict],
+    beliefs: list[TensorDict],
+    log_likelihoods: list[torch.Tensor],
 ) -> None:
     """``beliefs.npz``: ``<label>/<array>`` for every recording (see :func:`_belief_arrays`)."""
     arrays = {
         f"{label}/{key}": value
-        for label, recording, belief in zip(labels, recordings, beliefs, strict=True)
-        for key, value in _belief_arrays(recording, belief).items()
+        for label, recording, belief, values in zip(
+            labels, recordings, beliefs, log_likelihoods, strict=True
+        )
+        for key, value in _belief_arrays(recording, belief, values).items()
     }
     write_npz(path, arrays)
 
@@ -656,6 +695,13 @@ def format_fit(summary: dict[str, Any]) -> str:
                 low, high = agent["lapse_ci"]
                 lapse = f"lapse rate (fitted): {agent['lapse']:.3g} [{low:.3g}, {high:.3g}]"
             lines.append(f"  motor noise std (fitted): {noise}; {lapse}")
+            worst = agent.get("worst_trials")
+            if worst:
+                trials = ", ".join(f"{w['trial']:.15g} ({w['per_step']:.2f})" for w in worst)
+                lines.append(
+                    f"  trials explained worst, log-likelihood per step (median of all "
+                    f"{worst[0]['median_per_step']:.2f}): {trials}"
+                )
             check = agent.get("particle_check")
             if check:
                 gap = check["approximation_gap"]
