@@ -336,3 +336,88 @@ def test_works_with_a_torchrl_collector():
     collector.shutdown()
     assert [b.shape for b in batches] == [torch.Size([4, 10])] * 2
     assert torch.isfinite(batches[-1]["next", "belief", "cov"]).all()
+
+
+def test_the_belief_reward_is_the_goal_probability_under_the_belief_the_action_was_chosen_at():
+    """``BeliefReward`` scores a stop, as the world does, at the belief and step before the
+    action: a stop at ``min_steps`` inside the goal (under the belief it was chosen at; the
+    filter's next belief has left it) pays, the same action a step earlier only costs effort."""
+    env = filtered((2,), seed=0).append_transform(BeliefReward(MODEL))
+    theta = SPACE.from_dict({"g_v": 1.6, "goal_radius": 0.2, "effort_cost": 0.05})
+    td = env.reset(theta=theta)
+    pose = torch.tensor([1.1, 0.0, 0.0, 1.6, 0.0])  # inside the goal, leaving it at full speed
+    td["target"] = torch.tensor([[1.0, 0.0]] * 2)
+    td["state"] = pose.expand(2, 5).clone()
+    td["belief", "mean"] = pose.expand(2, 5).clone()
+    td["belief", "cov"] = 0.03**2 * torch.eye(5).expand(2, 5, 5).clone()
+    td["step"] = torch.tensor([[MODEL.min_steps], [MODEL.min_steps - 1]])
+    td["action"] = torch.tensor([[0.0, 0.5]] * 2)  # a stop, where stopping is allowed
+    out = env.step(td)
+    effort = 0.05 * 0.25
+    inside = disc_probability(
+        td["belief", "mean"][:1, :2] - td["target"][:1],
+        td["belief", "cov"][:1, :2, :2],
+        torch.tensor([[0.2]]),
+    )
+    assert inside.item() > 0.99
+    expected = torch.stack([10 * inside[0] - effort, torch.tensor([-effort])])
+    torch.testing.assert_close(out["next", "reward"], expected)
+    assert out["next", "terminated"].squeeze(-1).tolist() == [True, False]
+    # the belief after the step says the agent has left: scoring it would not pay
+    after = out["next", "belief"]
+    left = disc_probability(
+        after["mean"][:1, :2] - td["target"][:1], after["cov"][:1, :2, :2], torch.tensor([[0.2]])
+    )
+    assert left.item() < 0.5
+
+
+def test_belief_features_are_the_target_and_position_uncertainty_in_the_heading_frame():
+    """At any heading and full position covariance, the egocentric features are those of the
+    rotated frame: target ``R(-φ)(target - p)``, and std ahead, std aside and correlation of
+    ``R(-φ) C R(-φ)ᵀ`` (the correlation a true one, in [-1, 1])."""
+    gen = torch.Generator().manual_seed(0)
+    n = 64
+    mean = torch.randn(n, 5, generator=gen, dtype=torch.float64)
+    mean[:, 2] = 2 * math.pi * torch.rand(n, generator=gen, dtype=torch.float64) - math.pi
+    root = torch.randn(n, 5, 5, generator=gen, dtype=torch.float64)
+    cov = 0.1 * root @ root.mT + 1e-3 * torch.eye(5, dtype=torch.float64)
+    target = 2 * torch.randn(n, 2, generator=gen, dtype=torch.float64)
+    theta = SPACE.default().double()
+    f = MODEL.belief_features(mean, cov, target, torch.zeros(n, 1, dtype=torch.int64), theta)
+    c, s = mean[:, 2].cos(), mean[:, 2].sin()
+    turn = torch.stack([torch.stack([c, s], -1), torch.stack([-s, c], -1)], -2)  # R(-φ)
+    rel = (turn @ (target - mean[:, :2]).unsqueeze(-1)).squeeze(-1)
+    frame = turn @ cov[:, :2, :2] @ turn.mT
+    scale, distance = MODEL.target_distance[1], rel.norm(dim=-1)
+    sd = frame.diagonal(dim1=-2, dim2=-1).sqrt()
+    expected = torch.stack(
+        [
+            rel[:, 0] / scale,
+            rel[:, 1] / scale,
+            distance / scale,
+            rel[:, 1] / distance,
+            rel[:, 0] / distance,
+            sd[:, 0] / scale,
+            sd[:, 1] / scale,
+            frame[:, 0, 1] / (sd[:, 0] * sd[:, 1]),
+        ],
+        -1,
+    )
+    torch.testing.assert_close(f[:, [0, 1, 2, 3, 4, 7, 8, 9]], expected, rtol=1e-9, atol=1e-12)
+    assert f[:, 9].abs().max() <= 1
+
+
+def test_targets_are_uniform_in_distance_and_in_angle_on_both_sides_of_the_heading():
+    """20 000 targets (seed 0): distance uniform on ``target_distance`` and bearing uniform on
+    ``±target_angle`` (Kolmogorov–Smirnov distance under 0.015; its 1% critical value is 0.012),
+    so the task turns left as often as right."""
+    theta = SPACE.default().double().expand(20_000, -1)
+    state, target = MODEL.initial_state(theta, torch.Generator().manual_seed(0))
+    assert torch.equal(state, torch.zeros_like(state))
+    distance, angle = target.norm(dim=-1), torch.atan2(target[:, 1], target[:, 0])
+    lo, hi = MODEL.target_distance
+    for values, a, b in ((distance, lo, hi), (angle, -MODEL.target_angle, MODEL.target_angle)):
+        assert a <= values.min() and values.max() <= b
+        ordered = ((values.sort().values - a) / (b - a)).numpy()
+        uniform = (torch.arange(1, len(ordered) + 1, dtype=torch.float64) / len(ordered)).numpy()
+        assert abs(ordered - uniform).max() < 0.015

@@ -18,9 +18,17 @@ from irc_torchrl.algorithms.fit import (
 )
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
 from irc_torchrl.envs.firefly1d import STOP
+from irc_torchrl.envs.firefly2d import firefly2d_theta_space
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
-from irc_torchrl.objectives.fisher import Z95, batched_hessian, fisher_intervals
+from irc_torchrl.objectives.fisher import (
+    Z95,
+    batched_hessian,
+    fisher_intervals,
+    narrow,
+    observed_covariance,
+)
 from irc_torchrl.objectives.inverse import InverseRationalLoss
+from irc_torchrl.theta import Parameter, ThetaSpace
 
 TEMPERATURE = 0.5
 
@@ -270,6 +278,67 @@ def test_fisher_intervals_identification_and_bounds(space):
         fisher_intervals(space, theta_hat, u, hessian[:1])
     with pytest.raises(ValueError, match=r"meat: expected one \[p, p\] matrix per agent"):
         fisher_intervals(space, theta_hat, u, hessian, meat=hessian[:, :2, :2])
+
+
+def test_observed_covariance_inverts_the_curvature_and_leaves_only_flat_directions_unbounded():
+    """A positive definite Hessian (not diagonal) is inverted; one with a flat direction along
+    ``e₀ + e₁`` gets its pseudo-inverse, and only coordinates 0 and 1 are left unbounded."""
+    gen = torch.Generator().manual_seed(0)
+    root = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
+    hessian = root @ root.mT + 0.1 * torch.eye(3, dtype=torch.float64)
+    cov, unbounded = observed_covariance(hessian)
+    torch.testing.assert_close(cov, torch.linalg.inv(hessian), rtol=1e-9, atol=1e-12)
+    assert not unbounded.any()
+    flat = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64) / math.sqrt(2)
+    project = torch.eye(3, dtype=torch.float64) - torch.outer(flat, flat)
+    singular = project @ hessian @ project
+    cov, unbounded = observed_covariance(singular)
+    torch.testing.assert_close(cov, torch.linalg.pinv(singular), rtol=1e-7, atol=1e-9)
+    assert unbounded.tolist() == [[True, True, False]] * 4
+
+
+@pytest.mark.parametrize("sandwich", [False, True])
+def test_fisher_intervals_are_the_delta_method_of_the_inverse_curvature(sandwich):
+    """On the 2D task's θ (ranges other than 1, a fixed parameter between free ones) with two
+    nuisances and a full Hessian ``H`` (and meat ``M``): the covariance of the free θ is
+    ``J C Jᵀ`` for ``C = H⁻¹`` (``H⁻¹ M H⁻¹``) and ``J = ∂θ/∂u`` of the bounded transform, the
+    std its diagonal's root, and the interval ``θ(u ± Z95 √C)``."""
+    space = firefly2d_theta_space()
+    free = space.free_mask
+    k, n = int(free.sum()), 3
+    gen = torch.Generator().manual_seed(0)
+    theta_hat = space.sample((n,), generator=gen, dtype=torch.float64)
+    u = space.to_unconstrained(theta_hat)[:, free]
+    root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
+    hessian = 50 * (root @ root.mT) + 10 * torch.eye(k + 2, dtype=torch.float64)
+    root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
+    meat = 30 * (root @ root.mT) + 10 * torch.eye(k + 2, dtype=torch.float64)
+    iv = fisher_intervals(space, theta_hat, u, hessian, meat if sandwich else None)
+    cov = torch.linalg.inv(hessian)
+    if sandwich:
+        cov = cov @ meat @ cov
+    cov = cov[:, :k, :k]
+    for i in range(n):
+        full = space.to_unconstrained(theta_hat[i])
+
+        def natural(free_u, full=full):
+            return space.from_unconstrained(full.index_put((free,), free_u))[free]
+
+        jac = torch.func.jacrev(natural)(u[i])
+        torch.testing.assert_close(iv.covariance[i], jac @ cov[i] @ jac.T, rtol=1e-9, atol=0)
+        sd = cov[i].diagonal().sqrt()
+        torch.testing.assert_close(iv.std[i, free], (jac @ cov[i] @ jac.T).diagonal().sqrt())
+        torch.testing.assert_close(iv.low[i, free], natural(u[i] - Z95 * sd))
+        torch.testing.assert_close(iv.high[i, free], natural(u[i] + Z95 * sd))
+    assert (iv.std[:, ~free] == 0).all() and torch.equal(iv.low[:, ~free], theta_hat[:, ~free])
+
+
+def test_an_interval_is_narrow_only_while_it_spans_under_half_its_prior_range():
+    """The identification flag's rule, at either side of half the range (ranges 1.0 and 2.3)."""
+    low = torch.tensor([[0.5, -5.0]] * 2, dtype=torch.float64)
+    space = ThetaSpace([Parameter("a", 0.5, 1.5, 1.0), Parameter("b", -5.0, -2.7, -4.0)])
+    high = low + torch.tensor([[0.49, 0.49 * 2.3], [0.51, 0.51 * 2.3]], dtype=torch.float64)
+    assert narrow(space, low, high).tolist() == [[True, True], [False, False]]
 
 
 # --- the fit ------------------------------------------------------------------------------
