@@ -104,7 +104,7 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
     # uncalibrated intervals say so, and how to calibrate them
-    assert "95% intervals from the likelihood's curvature alone, not calibrated" in table
+    assert "95% intervals from the fit's likelihood alone, not calibrated" in table
     assert "(docs/recovery2d.md); calibrate=2 calibrates them by simulation" in table
     # irc fit's default, for recordings of real agents: the lapse rate fitted, from 0.01; this
     # agent never lapses, and its rate falls (measured: 0.0030, interval up to 0.022)

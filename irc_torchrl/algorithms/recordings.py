@@ -718,7 +718,7 @@ def format_fit(summary: dict[str, Any]) -> str:
             )
         else:
             lines.append(
-                f"{method}: 95% intervals from the likelihood's curvature alone, not calibrated: "
+                f"{method}: 95% intervals from the fit's likelihood alone, not calibrated: "
                 "on simulated agents such intervals hold the truth less often than 95% "
                 "(docs/recovery2d.md); calibrate=2 calibrates them by simulation"
             )
