@@ -78,6 +78,73 @@ def test_an_interval_covers_exactly_where_its_pivot_is_within_the_quantile(space
     torch.testing.assert_close(pivot, z / u_sd)
 
 
+def test_a_pivot_reads_the_half_width_on_the_truths_side_of_an_asymmetric_interval(space2d):
+    """A profile interval need not be symmetric about θ̂: its pivot is the truth's distance
+    from θ̂ over the half-width on the truth's side (in the fit's coordinates), so a truth
+    2 past θ̂ inside a side of 3 is covered (pivot 2/3 Z95) and one 2 short of θ̂ outside a
+    side of 1 is not (pivot −2 Z95)."""
+    free = space2d.free_mask
+    k = len(space2d.free_names)
+    theta_hat = space2d.default(torch.float64).repeat(2, 1)
+    result = _result(space2d, theta_hat, torch.eye(k, dtype=torch.float64).repeat(2, 1, 1))
+    u_hat = space2d.to_unconstrained(theta_hat)
+
+    def moved(by: float) -> torch.Tensor:
+        return space2d.from_unconstrained(u_hat + by * free)
+
+    ends = dataclasses.replace(result.intervals, low=moved(-1.0), high=moved(3.0))
+    result = dataclasses.replace(result, intervals=ends)
+    truth = torch.cat([moved(2.0)[:1], moved(-2.0)[1:]])
+    pivot = interval_pivots(space2d, truth, result)
+    expected = torch.tensor([[2 / 3], [-2.0]], dtype=torch.float64).expand(2, k) * Z95
+    torch.testing.assert_close(pivot, expected)
+
+
+def test_a_refit_without_an_interval_has_no_pivot_and_one_exactly_on_the_truth_pivot_zero(
+    space2d,
+):
+    """A parameter the refit leaves without an interval (no curvature: the whole range) has
+    a NaN pivot, which no factor counts; a truth exactly at θ̂ has pivot 0 (covered), also
+    where the interval has no width there; the others are z-scores (1 sd off: pivot 1)."""
+    free = space2d.free_mask
+    k = len(space2d.free_names)
+    theta_hat = space2d.default(torch.float64).repeat(2, 1)
+    hessian = torch.eye(k, dtype=torch.float64).repeat(2, 1, 1)
+    hessian[1, 0, 0] = 0.0
+    result = _result(space2d, theta_hat, hessian)
+    point = result.intervals.low.clone()
+    point[0] = theta_hat[0]
+    high = result.intervals.high.clone()
+    high[0] = theta_hat[0]
+    result = dataclasses.replace(
+        result, intervals=dataclasses.replace(result.intervals, low=point, high=high)
+    )
+    u = space2d.to_unconstrained(theta_hat)
+    truth = torch.cat([theta_hat[:1], space2d.from_unconstrained(u[1:] + 1.0 * free)])
+    pivot = interval_pivots(space2d, truth, result)
+    assert torch.equal(pivot[0], torch.zeros(k, dtype=torch.float64))
+    assert pivot[1, 0].isnan()
+    torch.testing.assert_close(pivot[1, 1:], torch.ones(k - 1, dtype=torch.float64))
+
+
+def test_a_calibrated_covariance_scales_by_both_parameters_factors(space2d):
+    """Factors that differ per parameter scale the covariance of parameters i and j by
+    ``c_i c_j`` (the correlations stay), and each standard deviation by its own factor."""
+    k = len(space2d.free_names)
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(2, k, k, generator=g, dtype=torch.float64)
+    theta_hat = space2d.default(torch.float64).repeat(2, 1)
+    result = _result(space2d, theta_hat, a @ a.mT + k * torch.eye(k, dtype=torch.float64))
+    factor = torch.linspace(0.5, 2.0, k, dtype=torch.float64)
+    calibrated = Calibration(space2d.free_names, factor, torch.zeros(1, 1, k)).apply(
+        space2d, result
+    )
+    old, new = result.intervals, calibrated.intervals
+    torch.testing.assert_close(new.covariance, old.covariance * factor.unsqueeze(-1) * factor)
+    free = space2d.free_mask
+    torch.testing.assert_close(new.std[:, free], old.std[:, free] * factor)
+
+
 def test_the_own_factor_is_the_pivots_95_percent_quantile_over_z95(space2d):
     k = len(space2d.free_names)
     pivots = torch.linspace(-4, 4, 2 * 50 * k, dtype=torch.float64).view(2, 50, k)
@@ -345,6 +412,9 @@ def test_agents_simulated_at_fits_lapse_at_each_ones_fitted_rate():
     # probability 0.1/4 inside the bounds, more where the output sits on a bound
     assert 0.3 * 0.8 < fraction[0] < 0.3 * (1 - 0.1 / 4) + 0.03
     assert fraction[1] < 0.01
+    # each acts at its own θ̂ in its own world
+    assert torch.equal(trials["theta"][:, 0, 0], theta_hat.float())
+    assert torch.equal(trials["task_theta"][:, 0, 0], world)
 
 
 def test_recovery_reports_intervals_calibrated_on_simulated_refits():
