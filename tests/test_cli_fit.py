@@ -103,6 +103,14 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
         assert 0 < low < std < high
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
+    # the estimates' correlations over the free parameters: symmetric, ones on the diagonal
+    correlation = agent["correlation"]
+    assert list(correlation) == FREE and all(list(row) == FREE for row in correlation.values())
+    for a in FREE:
+        assert correlation[a][a] == pytest.approx(1.0)
+        for b in FREE:
+            assert correlation[a][b] == pytest.approx(correlation[b][a])
+            assert -1 <= correlation[a][b] <= 1
     # uncalibrated intervals say so, and how to calibrate them
     assert "95% intervals from the fit's likelihood alone, not calibrated" in table
     assert "(docs/recovery2d.md); calibrate=2 calibrates them by simulation" in table

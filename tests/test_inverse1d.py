@@ -333,6 +333,34 @@ def test_fisher_intervals_are_the_delta_method_of_the_inverse_curvature(sandwich
     assert (iv.std[:, ~free] == 0).all() and torch.equal(iv.low[:, ~free], theta_hat[:, ~free])
 
 
+def test_correlations_are_those_of_the_inverse_curvature_and_unknown_where_unbounded():
+    """The free parameters' correlations are the inverse Hessian's over the free θ (the delta
+    method rescales each coordinate, which leaves correlations as they are), with a fixed
+    parameter between the free ones; a parameter the data do not bound gets NaN in its row
+    and column, and the others keep theirs."""
+    space = firefly2d_theta_space()
+    free = space.free_mask
+    k, n = int(free.sum()), 2
+    gen = torch.Generator().manual_seed(1)
+    theta_hat = space.sample((n,), generator=gen, dtype=torch.float64)
+    u = space.to_unconstrained(theta_hat)[:, free]
+    root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
+    hessian = 20 * (root @ root.mT) + torch.eye(k + 2, dtype=torch.float64)
+    cov = torch.linalg.inv(hessian)[:, :k, :k]
+    sd = cov.diagonal(dim1=-2, dim2=-1).sqrt()
+    expected = cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2))
+    r = fisher_intervals(space, theta_hat, u, hessian).correlation(free)
+    torch.testing.assert_close(r, expected, rtol=1e-9, atol=1e-12)
+    assert r.abs().amax() > 0.3  # a test of more than the identity
+    flat = hessian.clone()
+    flat[1, 2, :] = flat[1, :, 2] = 0  # the third free parameter unbounded for agent 1
+    r = fisher_intervals(space, theta_hat, u, flat).correlation(free)
+    assert torch.isnan(r[1, 2]).all() and torch.isnan(r[1, :, 2]).all()
+    others = [i for i in range(k) if i != 2]
+    assert torch.isfinite(r[1][others][:, others]).all() and torch.isfinite(r[0]).all()
+    torch.testing.assert_close(r[1].diagonal()[others], torch.ones(k - 1, dtype=torch.float64))
+
+
 def test_an_interval_is_narrow_only_while_it_spans_under_half_its_prior_range():
     """The identification flag's rule, at either side of half the range (ranges 1.0 and 2.3)."""
     low = torch.tensor([[0.5, -5.0]] * 2, dtype=torch.float64)

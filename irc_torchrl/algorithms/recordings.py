@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import shutil
 import time
@@ -64,6 +65,8 @@ __all__ = [
 FORMATS = {"csv": ".csv", "npz": ".npz", "nwb": ".nwb", "memmap": ""}
 #: what ``--method`` accepts: one estimator, or both (marginal reported, map kept beside it)
 FIT_METHODS = (*METHODS, "both")
+#: the correlation of two estimates from which the table names them as traded off by the data
+TRADED_OFF = 0.8
 
 
 def _theta_values(values: dict, field: str, space: ThetaSpace | None = None) -> dict[str, float]:
@@ -602,6 +605,8 @@ def _scored(
                 agent["theta_true"] = space.to_dict(truth)
     noise = action_model.motor_noise(result.nuisance)
     lapse = action_model.lapse_rate(result.nuisance)
+    correlation = result.intervals.correlation(space.free_mask)
+    free = space.free_names
     # the fit's intervals of the nuisance coordinates, mapped to motor noise and lapse rate
     ends = result.nuisance_intervals(torch.tensor(action_model.nuisance_bounded))
     noise_ci = [action_model.motor_noise(end) for end in ends]
@@ -615,6 +620,10 @@ def _scored(
             motor_noise=[float(v) for v in noise[i]],
             motor_noise_ci=[[float(end[i, j]) for end in noise_ci] for j in range(noise.shape[1])],
             lapse=float(lapse[i]),
+            correlation={
+                a: {b: float(correlation[i, j, m]) for m, b in enumerate(free)}
+                for j, a in enumerate(free)
+            },
         )
         if action_model.fit_lapse:
             agent["lapse_ci"] = [float(end[i]) for end in lapse_ci]
@@ -658,6 +667,20 @@ def _write_beliefs(
     write_npz(path, arrays)
 
 
+def _traded_off(correlation: Mapping[str, Mapping[str, float | None]]) -> str:
+    """The pairs of parameters whose estimates correlate at least :data:`TRADED_OFF`, most
+    correlated first (``""`` if none)."""
+    names = list(correlation)
+    pairs = [
+        (r, a, b)
+        for i, a in enumerate(names)
+        for b in names[i + 1 :]
+        if (r := correlation[a][b]) is not None and math.isfinite(r) and abs(r) >= TRADED_OFF
+    ]
+    pairs.sort(key=lambda pair: -abs(pair[0]))
+    return ", ".join(f"{a} ~ {b} (r {r:+.2f})" for r, a, b in pairs)
+
+
 def format_fit(summary: dict[str, Any]) -> str:
     """A readable table per recording: θ̂, its 95% interval, the truth if known, identified."""
     units = summary.get("units", {})
@@ -695,6 +718,9 @@ def format_fit(summary: dict[str, Any]) -> str:
                 low, high = agent["lapse_ci"]
                 lapse = f"lapse rate (fitted): {agent['lapse']:.3g} [{low:.3g}, {high:.3g}]"
             lines.append(f"  motor noise std (fitted): {noise}; {lapse}")
+            traded = _traded_off(agent.get("correlation", {}))
+            if traded:
+                lines.append(f"  traded off by the data (|r| ≥ {TRADED_OFF}): {traded}")
             worst = agent.get("worst_trials")
             if worst:
                 trials = ", ".join(f"{w['trial']:.15g} ({w['per_step']:.2f})" for w in worst)

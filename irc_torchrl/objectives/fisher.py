@@ -67,6 +67,17 @@ class Intervals:
         """The agents ``rows`` (an index or mask)."""
         return Intervals(*(getattr(self, f.name)[rows] for f in dataclasses.fields(self)))
 
+    def correlation(self, free: torch.Tensor) -> torch.Tensor:
+        """The correlations ``[n, k, k]`` of the ``free`` parameters (``[d]`` bool: how far the
+        data trade one off against another); NaN in the rows and columns of a parameter the
+        data do not bound."""
+        sd = self.covariance.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+        bounded = torch.isfinite(self.std[:, free.to(self.std.device)]) & (sd > 0)
+        pair = bounded.unsqueeze(-1) & bounded.unsqueeze(-2)
+        scale = (sd.unsqueeze(-1) * sd.unsqueeze(-2)).clamp_min(1e-300)
+        r = (self.covariance / scale).clamp(-1, 1)  # |r| ≤ 1 beyond rounding
+        return torch.where(pair, r, torch.full_like(scale, torch.nan))
+
     def cpu(self) -> Intervals:
         """These intervals on the CPU."""
         return Intervals(*(getattr(self, f.name).cpu() for f in dataclasses.fields(self)))
