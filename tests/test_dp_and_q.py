@@ -25,11 +25,14 @@ def theta_row(space, g_a, log_sigma0, radius=1.0, cost=0.3):
     ).double()
 
 
-def brute_force(model: Firefly1DModel, theta: torch.Tensor, rel: float) -> list[float]:
+def brute_force(
+    model: Firefly1DModel, theta: torch.Tensor, rel: float, gamma: float = 1.0
+) -> list[float]:
     """Best belief-expected return for each first action, by enumerating all action sequences.
 
     Written from the paper: μ_{t+1} = μ_t + g_a·a, σ²_t = σ²_init + t·σ₀²; stopping at t pays
-    R·P(|x − target| < r) under N(μ_t, σ²_t); each move costs c; the trial ends at T steps.
+    R·P(|x − target| < r) under N(μ_t, σ²_t); each move costs c; the trial ends at T steps;
+    a reward at step t counts γᵗ.
     """
     g, log_s0, r, c = (float(v) for v in theta)
     s0sq = math.exp(2 * log_s0)
@@ -41,9 +44,9 @@ def brute_force(model: Firefly1DModel, theta: torch.Tensor, rel: float) -> list[
                 sd = math.sqrt(model.initial_variance + t * s0sq)
                 p = 0.5 * (math.erf((r - offset) / (sd * math.sqrt(2)))
                            - math.erf((-r - offset) / (sd * math.sqrt(2))))
-                total += model.reward_value * p
+                total += gamma**t * model.reward_value * p
                 break
-            total -= c
+            total -= gamma**t * c
             offset += g * (a - STOP)
         best[seq[0]] = max(best[seq[0]], total)
     return best
@@ -258,3 +261,18 @@ def test_a_basis_of_one_is_the_constant_feature():
     features = torch.randn(4, 3)
     assert torch.equal(q.phi(features[:, :2]), torch.ones(4, 1))
     assert q(features).shape == (4, 3)
+
+
+def test_dp_discounts_each_later_reward_as_brute_force_does():
+    """With γ = 0.8 the DP's Q is the best Σ γᵗ rₜ over all action sequences (4-step horizon)."""
+    model = Firefly1DModel(max_steps=4)
+    space = model.theta_space.free()
+    model.theta_space = space
+    thetas = torch.stack([theta_row(space, 1.0, math.log(0.3), cost=0.05),
+                          theta_row(space, 0.7, -0.4, radius=0.9, cost=0.4)])  # fmt: skip
+    starts = torch.tensor([-2.6, 0.4, 1.9], dtype=torch.float64)
+    q = optimal_values(model, thetas, starts, gamma=0.8)
+    for i, j in itertools.product(range(2), range(3)):
+        expected = brute_force(model, thetas[i], float(starts[j]), gamma=0.8)
+        torch.testing.assert_close(q[i, j], torch.tensor(expected, dtype=torch.float64),
+                                   atol=1e-9, rtol=0)  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -30,6 +31,7 @@ from irc_torchrl.algorithms.ensemble import (
 )
 from irc_torchrl.checkpoint import load_checkpoint
 from irc_torchrl.config import config_to_dict, load_firefly2d_config
+from irc_torchrl.envs.belief import BELIEF_MEAN
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import make_actor, make_critic
 from irc_torchrl.modules.pursuit import BeliefPursuit
@@ -416,3 +418,49 @@ def test_shipped_critic_values_stopping_on_the_target_and_going_when_it_is_far()
     # the believed target at the agent is worth more than any far one (on the grid's edge)
     edge = torch.cat([s["value"][-1], s["value"][:, 0], s["value"][:, -1]])
     assert s["value"][s["value"].shape[0] // 5, s["value"].shape[1] // 2] > edge.max() + 2.0
+
+
+def test_pursuit_acts_on_the_coasted_belief_as_its_rule_says():
+    """Four beliefs ``(x, y, φ, v, ω)`` at the default θ (g_v 1.2, g_ω 1, radius 0.35; dt 0.1)
+    against the rule worked out by hand: coast one step, turn by the wrapped bearing, drive
+    the coasted distance (at least 0.2 forward), stop on the current distance below 0.175."""
+    model = Firefly2DModel()
+    theta = model.theta_space.default()
+    g_v, g_w, radius, dt = 1.2, 1.0, 0.35, model.dt
+
+    def rule(mean, target):
+        x, y, phi, v, w = mean
+        cx, cy, cphi = x + v * math.cos(phi) * dt, y + v * math.sin(phi) * dt, phi + w * dt
+        bearing = math.atan2(target[1] - cy, target[0] - cx) - cphi
+        bearing = math.atan2(math.sin(bearing), math.cos(bearing))
+        distance = math.hypot(target[0] - cx, target[1] - cy)
+        a_w = min(max(bearing / (g_w * dt), -1), 1)
+        a_v = max(min(distance / (g_v * dt), 1) * max(math.cos(bearing), 0), 0.2)
+        if math.hypot(target[0] - x, target[1] - y) < 0.5 * radius:
+            a_v = 0.0
+        return [a_v, a_w]
+
+    cases = [
+        # heading 3.1 turning at 0.5: the raw bearing −6.22 is the small left turn 0.061
+        ((0.0, 0.0, 3.1, 1.0, 0.5), (-1.1, -0.065)),
+        # 0.16 behind while driving on at 1: stops now, though the coasted distance is 0.26
+        ((0.0, 0.0, 0.0, 1.0, 0.0), (-0.16, 0.0)),
+        # 0.2 ahead: goes on (above 0.175 now) to cover the coasted 0.1 at 0.1 / 0.12
+        ((0.0, 0.0, 0.0, 1.0, 0.0), (0.2, 0.0)),
+        # standing, the target at a right angle: full turn, forward at the floor 0.2
+        ((0.0, 0.0, 0.0, 0.0, 0.0), (0.0, 1.0)),
+    ]
+    td = TensorDict(
+        {
+            BELIEF_MEAN: torch.tensor([mean for mean, _ in cases], dtype=torch.float64),
+            "target": torch.tensor([target for _, target in cases], dtype=torch.float64),
+            "theta": theta.double().expand(len(cases), -1),
+        },
+        [len(cases)],
+    )
+    action = BeliefPursuit(model)(td)["action"]
+    expected = torch.tensor([rule(mean, target) for mean, target in cases], dtype=torch.float64)
+    torch.testing.assert_close(action, expected, atol=1e-6, rtol=0)  # θ is float32
+    assert action[0, 1].item() == pytest.approx(0.606, abs=1e-3)
+    assert action[1, 0] == 0 and action[2, 0].item() == pytest.approx(0.1 / 0.12)
+    assert action[3].tolist() == pytest.approx([0.2, 1.0])

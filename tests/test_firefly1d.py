@@ -218,3 +218,44 @@ def test_bad_inputs():
     td.set("action", torch.tensor([5, 1]))
     with pytest.raises(ValueError, match="action"):
         env.step(td)
+
+
+def test_targets_are_uniform_over_the_whole_range_on_both_sides():
+    """4000 first targets of ``target_range`` 12: uniform on [−12, 12] (a half on each side
+    within 0.03, sd 0.008; quartiles ±6 within 0.6, sd 0.2; both ends reached within 0.3)."""
+    target = Firefly1DEnv(batch_size=(4000,), seed=0).reset()["target"][:, 0]
+    assert target.abs().max() <= 12
+    assert abs((target < 0).double().mean().item() - 0.5) < 0.03
+    quartiles = torch.quantile(target, torch.tensor([0.25, 0.5, 0.75]))
+    torch.testing.assert_close(quartiles, torch.tensor([-6.0, 0.0, 6.0]), atol=0.6, rtol=0)
+    assert target.min() < -11.7 and target.max() > 11.7
+
+
+def test_belief_features_are_the_documented_scaled_quantities():
+    """For beliefs N(±0.5 from the target, 0.3²) at step 6 of 30: position over the target
+    range and its size, the std, the time fraction, P(|x − target| < 1) from scipy and θ in
+    [−1, 1] (g_a 1.4 → 0.8, σ₀ 0.1 → 2 log 2 / log 20 − 1, radius 1 → −1/3, cost 0.3 → −9/19)."""
+    theta = theta_of(1.4, 0.1)
+    mean = torch.tensor([[2.5], [1.5]])
+    features = MODEL.belief_features(
+        mean, torch.full((2, 1, 1), 0.09), torch.tensor([[2.0]]), torch.tensor([[6]]), theta
+    )
+    p_goal = stats.norm.cdf(0.5 / 0.3) - stats.norm.cdf(-1.5 / 0.3)
+    unit = [0.8, 2 * math.log(2) / math.log(20) - 1, -1 / 3, -9 / 19]
+    expected = torch.tensor(
+        [[sign * 0.5 / 12, 0.5 / 12, 0.3, 0.2, p_goal, *unit] for sign in (1, -1)],
+        dtype=torch.float32,
+    )
+    torch.testing.assert_close(features, expected, atol=1e-6, rtol=1e-5)
+
+
+def test_the_world_pays_inside_the_goal_radius_of_theta_and_charges_its_move_cost():
+    """With the radius and cost free at 0.5 and 0.6, a stop 0.4 from the target pays 10, one
+    0.7 from it nothing (it would pay 10 within the default radius 1), and a move costs 0.6."""
+    space = SPACE.free()
+    theta = space.from_dict({"goal_radius": 0.5, "move_cost": 0.6})
+    model = Firefly1DModel(theta_space=space)
+    state, target = torch.tensor([[0.4], [-0.7], [3.0]]), torch.zeros(3, 1)
+    action = torch.tensor([STOP, STOP, RIGHT])
+    reward = model.reward(state, target, action, model.stops(action, torch.zeros(3, 1)), theta)
+    torch.testing.assert_close(reward, torch.tensor([[10.0], [0.0], [-0.6]]))

@@ -17,7 +17,7 @@ from irc_torchrl.algorithms.fit import (
     profile_intervals,
 )
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
-from irc_torchrl.envs.firefly1d import STOP
+from irc_torchrl.envs.firefly1d import STOP, Firefly1DModel
 from irc_torchrl.envs.firefly2d import firefly2d_theta_space
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.fisher import (
@@ -102,6 +102,54 @@ def test_simulation_reproducible_per_seed(firefly1d_model, trained_q, agents, sp
     other = simulate_agents(firefly1d_model, policy, agents, 8, task_theta=space.default(), seed=4)
     assert not torch.equal(other["action"], small_trials["action"])
     assert not torch.equal(other["target"], small_trials["target"])
+
+
+class _ConstantQ(torch.nn.Module):
+    """Q of 0, 1, 2 for left, stop, right whatever the belief."""
+
+    def forward(self, features):
+        return torch.tensor([0.0, 1.0, 2.0]).expand(*features.shape[:-1], 3)
+
+
+def test_boltzmann_agents_draw_softmax_of_q_over_temperature_from_their_seed():
+    """At temperature 0.5 a constant Q (0, 1, 2) gives softmax(0, 2, 4) = (0.016, 0.117,
+    0.867): the first actions of 2000 trials within 0.03 of it (sd ≤ 0.008). The seed decides
+    both the policy's draws and the world's: the same seed repeats them, another changes the
+    first actions (which this Q draws whatever the targets) and the first targets."""
+    model = Firefly1DModel(max_steps=2)
+    theta = model.theta_space.default().unsqueeze(0)
+    policy = boltzmann_policy(model, _ConstantQ(), 0.5)
+    trials = simulate_agents(model, policy, theta, 2000, seed=0)
+    first = trials["action"][0, :, 0]
+    frequency = torch.bincount(first, minlength=3).double() / len(first)
+    expected = torch.softmax(torch.tensor([0.0, 2.0, 4.0], dtype=torch.float64), 0)
+    torch.testing.assert_close(frequency, expected, atol=0.03, rtol=0)
+    again = simulate_agents(model, policy, theta, 2000, seed=0)
+    other = simulate_agents(model, policy, theta, 2000, seed=1)
+    assert (again == trials).all()
+    assert not torch.equal(other["action"][0, :, 0], first)
+    assert not torch.equal(other["target"][0, :, 0], trials["target"][0, :, 0])
+
+
+def test_each_agent_walks_in_its_own_world_when_task_theta_is_given_per_agent():
+    """Two agents with one θ in worlds of gains 0.6 and 1.4 (σ₀ = 0.05): each trial's world θ
+    is its agent's, and the mean step of a move within a trial, over 40 random-policy trials,
+    is that world's gain within 0.03 (its se is below 0.01)."""
+    model = Firefly1DModel()
+    space = model.theta_space
+    theta = space.default().expand(2, -1)
+    world = torch.stack([space.from_dict({"g_a": g, "log_sigma0": math.log(0.05)})
+                         for g in (0.6, 1.4)])  # fmt: skip
+    trials = simulate_agents(model, None, theta, 40, task_theta=world, seed=0)
+    assert torch.equal(trials["task_theta"], world.view(2, 1, 1, -1).expand_as(trials["theta"]))
+    x, action, mask = trials["state"][..., 0], trials["action"], trials["mask"]
+    move = (action[..., :-1] - STOP).double()
+    within = mask[..., 1:] & (move != 0)  # a move whose next step is in the same trial
+    steps = (x[..., 1:] - x[..., :-1]).double() * move
+    for agent, gain in enumerate((0.6, 1.4)):
+        made = steps[agent][within[agent]]
+        assert len(made) > 30
+        assert abs(made.mean().item() - gain) < 0.03
 
 
 # --- the likelihood -------------------------------------------------------------------------

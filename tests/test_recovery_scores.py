@@ -60,3 +60,48 @@ def test_scores_report_coverage_interval_and_z_calibration():
     assert a["z_robust_sd"] == pytest.approx(1.4826, rel=1e-5)
     header, row = format_parameters(scores)
     assert row.split()[:3] == ["a", "0.60", "{:.2f}–{:.2f}".format(*coverage_interval(3, 5))]
+
+
+def test_scores_read_each_free_parameters_own_column_and_take_medians_against_the_truth():
+    """Five agents, a fixed at 1 (θ's first column) and b free: each score is a hand-computed
+    median over agents of b alone, errors relative to θ* (not θ̂), an interval covering a truth
+    on either of its ends, and the agents' entries carry their own θ*."""
+    truth_b = torch.tensor([2.0, 4.0, 1.0, 5.0, 10.0])
+    error_b = torch.tensor([0.2, -0.4, 0.3, 1.0, -4.0])  # |err| 0.2 0.4 0.3 1 4; /θ* .1 .1 .3 .2 .4
+    truth = torch.stack([torch.ones(5), truth_b], -1)
+    hat = torch.stack([torch.ones(5), truth_b + error_b], -1)
+    # b's intervals: covering, ending on θ* (high, then low), missing above, missing below
+    low_b = torch.tensor([1.9, 3.0, 1.0, 5.5, 2.0])
+    high_b = torch.tensor([2.3, 4.0, 1.6, 6.3, 9.0])  # widths 0.4 1.0 0.6 0.8 7.0
+    std_b = torch.tensor([0.1, 0.2, 0.1, 0.5, 2.0])  # z = 2, −2, 3, 2, −2
+    intervals = Intervals(
+        std=torch.stack([torch.zeros(5), std_b], -1),
+        low=torch.stack([torch.ones(5), low_b], -1),
+        high=torch.stack([torch.ones(5), high_b], -1),
+        identified=torch.tensor([[True, True]] * 4 + [[True, False]]),
+        covariance=torch.zeros(5, 2, 2),
+        profiled=torch.tensor([[False, False], [False, False], [False, True], [False, False],
+                               [False, False]]),
+    )  # fmt: skip
+    result = FitResult(
+        theta_hat=hat,
+        nuisance=torch.zeros(5, 1),
+        log_likelihood=torch.zeros(5),
+        intervals=intervals,
+        converged=torch.ones(5, dtype=torch.bool),
+        iterations=1,
+        names=["a", "b"],
+        information=torch.eye(2).expand(5, 2, 2),
+    )
+    summary = score_recovery(["b"], ["a", "b"], truth, result)
+    b = summary["parameters"]["b"]
+    assert list(summary["parameters"]) == ["b"]
+    assert b["coverage"] == 0.6 and b["coverage_ci"] == pytest.approx(coverage_interval(3, 5))
+    assert b["median_abs_error"] == pytest.approx(0.4)
+    assert b["median_rel_error"] == pytest.approx(0.2)
+    assert b["median_ci_width"] == pytest.approx(0.8)
+    assert b["z_median"] == pytest.approx(2.0)
+    assert b["identified_fraction"] == 0.8 and b["profiled_fraction"] == 0.2
+    assert [agent["theta_true"]["b"] for agent in summary["agents"]] == truth_b.tolist()
+    row = format_parameters(summary["parameters"])[1].split()
+    assert row[0] == "b" and row[-3:] == ["0.4000", "0.2000", "0.8000"]

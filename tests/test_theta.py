@@ -281,3 +281,31 @@ def test_from_config_refuses_a_malformed_description_naming_the_field(edit, mess
     edit(config)
     with pytest.raises(ValueError, match=f"^where: (parameter )?{message}"):
         ThetaSpace.from_config(config, field="where")
+
+
+def test_fix_overrides_a_fixed_value_and_with_range_keeps_the_rest_of_the_space():
+    """Re-fixing a fixed parameter takes the new value (the 1D task's goal radius, fixed at 1 by
+    default); a new range keeps the other parameters fixed and clips the default only if it
+    falls outside the range, to the nearer end."""
+    space = make_space()
+    refixed = space.fix(radius=1.5)
+    assert refixed.fixed == {"radius": 1.5} and refixed.default()[2].item() == 1.5
+    assert (refixed.sample((20,))[:, 2] == 1.5).all()
+    assert firefly1d_theta_space().fix(goal_radius=1.5).fixed["goal_radius"] == 1.5
+    wide = space.with_range("gain", 0.6, 1.4)
+    assert wide.fixed == {"radius": 1.25} and wide.free_names == ["gain", "log_noise"]
+    assert wide["gain"].default == 1.0  # inside the new range: kept
+    assert space.with_range("gain", 1.2, 1.4)["gain"].default == 1.2  # below it: the low end
+    assert space.with_range("gain", 0.6, 0.8)["gain"].default == 0.8  # above it: the high end
+
+
+def test_validate_accepts_both_bounds_and_the_tolerance_beyond_each_but_no_more():
+    """The prior's own bounds are valid θ on both sides; so is a slip within the tolerance
+    (relative to the range); twice the tolerance beyond either bound is refused."""
+    space = make_space()
+    span = space.high() - space.low()
+    for edge, sign in ((space.low(), -1), (space.high(), 1)):
+        space.validate(edge.clone())
+        space.validate(edge + sign * 0.5 * space.tolerance * span)
+        with pytest.raises(ValueError, match="gain="):
+            space.validate(edge + sign * 2 * space.tolerance * span * torch.tensor([1.0, 0, 0]))
