@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -302,6 +303,47 @@ def test_other_major_version_is_refused(tmp_path):
     torch.save(payload, path)
     with pytest.raises(ValueError, match="version 99.0.0"):
         load_checkpoint(path)
+
+
+def test_another_minor_version_of_the_same_major_loads(tmp_path):
+    """Only the major version is compared: a checkpoint from 0.99.0 loads under 0.1.0."""
+    path = save_checkpoint(
+        tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state={}
+    )
+    payload = torch.load(path, weights_only=True)
+    payload["version"] = f"{irc_torchrl.__version__.split('.')[0]}.99.0"
+    torch.save(payload, path)
+    assert load_checkpoint(path, task="firefly2d", theta_space=_SPACE)["version"].endswith(".99.0")
+
+
+@pytest.mark.parametrize("value", [torch.inf, -torch.inf, torch.nan])
+def test_a_non_finite_tensor_inside_a_list_is_refused_naming_it(tmp_path, value):
+    """An optimiser's state holds lists of tensors; an infinite one is as damaged as a NaN."""
+    state = {"opt": {"groups": [torch.ones(2), torch.tensor([1.0, value])]}}
+    path = save_checkpoint(
+        tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state=state
+    )
+    with pytest.raises(ValueError, match="c.pt: entry opt/groups/1 holds NaN or infinite"):
+        load_checkpoint(path)
+
+
+def test_a_failing_save_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
+    """A run killed while saving leaves the last good checkpoint and no partial file beside it."""
+    path = save_checkpoint(
+        tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state={"n": 1}
+    )
+    good = path.read_bytes()
+
+    def fail(payload, file, **kwargs):
+        Path(file).write_bytes(b"PK partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", fail)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, task="firefly2d", theta_space=_SPACE, config={}, state={"n": 2})
+    monkeypatch.undo()
+    assert path.read_bytes() == good and list(tmp_path.iterdir()) == [path]
+    assert load_checkpoint(path)["n"] == 1
 
 
 def test_resume_restores_state_and_is_deterministic(tmp_path, trained):

@@ -58,6 +58,11 @@ def _write_raw(columns: dict[str, np.ndarray], path) -> None:
         writer.writerows(zip(*(c.tolist() for c in columns.values()), strict=True))
 
 
+def _write_recording(columns: dict[str, np.ndarray], path) -> Path:
+    _write_raw(columns, path)
+    return path
+
+
 def _assert_same(back: TensorDict, trials: TensorDict) -> None:
     """Equal recorded steps, equal masks, and padding only beyond the longest trial."""
     steps = back.shape[-1]
@@ -68,6 +73,35 @@ def _assert_same(back: TensorDict, trials: TensorDict) -> None:
         expected = trials[key][:, :steps][mask].double()
         assert torch.allclose(back[key][mask].double(), expected, atol=1e-5), key
     assert back["action"].dtype == trials["action"].dtype
+
+
+def _hand_made(labels, steps=12, *, dt=0.1, start=0.0, jitter=0.0, heading=0.3, speed=0.5):
+    """A recording made by hand, one row per step, every value known: in each trial the agent
+    runs at ``speed`` along ``heading`` (one angle, or one per step), its positions stepped
+    from its headings as the task steps them; trial ``i`` starts ``i`` m east at time
+    ``start + 10 i`` s, its times ``jitter`` s off the grid at most."""
+    rng = np.random.default_rng(0)
+    rows: dict[str, list[np.ndarray]] = {}
+    for i, label in enumerate(labels):
+        time = start + 10.0 * i + dt * np.arange(steps) + jitter * rng.uniform(-1, 1, steps)
+        angle = np.broadcast_to(np.asarray(heading, dtype=np.float64), (steps,))
+        step = speed * np.diff(time)
+        trial = {
+            "trial": np.full(steps, label, dtype=np.float64),
+            "time": time,
+            "x": float(i) + np.concatenate([[0.0], np.cumsum(step * np.cos(angle[:-1]))]),
+            "y": np.concatenate([[0.0], np.cumsum(step * np.sin(angle[:-1]))]),
+            "heading": angle.copy(),
+            "v": np.full(steps, speed),
+            "w": np.zeros(steps),
+            "a_v": np.full(steps, speed / 1.2),  # g_v's default
+            "a_w": np.zeros(steps),
+            "target_x": np.full(steps, 1.0 + i),
+            "target_y": np.full(steps, 0.5),
+        }
+        for name, value in trial.items():
+            rows.setdefault(name, []).append(value)
+    return {name: np.concatenate(value) for name, value in rows.items()}
 
 
 # --- round trips -----------------------------------------------------------------------------
@@ -82,6 +116,28 @@ def test_round_trip_preserves_values_mask_and_padding(tmp_path, model2d, trials2
     steps = (torch.arange(back.shape[-1]) * model2d.dt).expand(back.shape)
     assert torch.allclose(back["time"][back["mask"]], steps[back["mask"]])
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".csv", "", ".nwb"])
+def test_a_round_trip_is_bit_for_bit_and_pads_with_each_trials_last_step(
+    tmp_path, model2d, trials2d, suffix
+):
+    """Written then read, every recorded value is the same float32 (a CSV at fewer than 9
+    digits was not), each trial's own θ included (not the space's default), and each trial
+    is padded by repeating its last step, as documented."""
+    if suffix == ".nwb":
+        pytest.importorskip("pynwb")
+    trials = trials2d.clone()
+    theta = model2d.theta_space.sample((len(trials),), generator=torch.Generator().manual_seed(3))
+    trials["task_theta"] = theta.float()[:, None].expand(trials.shape + theta.shape[-1:])
+    back = read_trials(write_trials(trials, tmp_path / f"t{suffix}", model2d), model2d)
+    mask, lengths = back["mask"], back["mask"].sum(-1)
+    assert torch.equal(mask, trials["mask"][:, : back.shape[-1]])
+    assert torch.equal(back["trial"][:, 0], torch.arange(len(trials)))
+    for key in ("state", "action", "target", "task_theta"):
+        assert torch.equal(back[key][mask], trials[key][:, : back.shape[-1]][mask]), key
+        for i, n in enumerate(lengths.tolist()):
+            assert (back[key][i, n:] == back[key][i, n - 1]).all(), (key, i)
 
 
 def test_round_trip_of_discrete_actions_keeps_integers(tmp_path, model1d, trials1d):
@@ -204,7 +260,7 @@ def _oversampled(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         fine = np.linspace(time[0], time[-1], 2 * len(time) - 1)
         held = np.searchsorted(time, fine, side="right") - 1
         for key, values in columns.items():
-            held_key = key in ("trial", "a_v", "a_w")
+            held_key = key in ("trial", "a_v", "a_w", "action")
             out[key].append(values[rows][held] if held_key else np.interp(fine, time, values[rows]))
     return {k: np.concatenate(v) for k, v in out.items()}
 
@@ -223,6 +279,111 @@ def test_resample_false_keeps_the_recording_and_warns(tmp_path, model2d, trials2
     with pytest.warns(UserWarning, match="kept as recorded"):
         back = read_trials(tmp_path / "fine.npz", model2d, resample=False)
     assert back.shape[-1] == 2 * trials2d["mask"].sum(-1).max() - 1
+
+
+def test_an_oversampled_recording_of_discrete_actions_keeps_each_steps_action(
+    tmp_path, model1d, trials1d
+):
+    """Resampled, a discrete action is the sample's at or before each model step, not the one
+    half a step earlier (the previous step's action)."""
+    _write_raw(_oversampled(trials_to_columns(trials1d, model1d)), tmp_path / "fine.csv")
+    with pytest.warns(UserWarning, match="resampled every trial from a median time step of 0.5"):
+        back = read_trials(tmp_path / "fine.csv", model1d)
+    _assert_same(back, trials1d)
+
+
+def test_an_agent_recorded_acting_twice_a_step_reads_with_the_action_at_each_steps_time(
+    tmp_path, model1d
+):
+    """Resampled, a discrete action is the sample's at (or else before) each model step's
+    time: right at every whole second, never the stop taken half a second later, even where
+    the session clock (from 3.3 s) puts the sample a hair past the second."""
+    time = 0.5 * np.arange(16)
+    action = np.where(time % 1 == 0, 2, 1)  # right, then stop, every second
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (action[:-1] - 1))])  # g_a = 1
+    columns = {"trial": np.zeros(16), "time": 3.3 + time, "x": x, "action": action}
+    columns["target_x"] = np.full(16, 5.0)
+    assert (columns["time"][::2] - 3.3 > np.arange(8)).any()  # the hair past
+    with pytest.warns(UserWarning, match="resampled"):
+        back = read_trials(_write_recording(columns, tmp_path / "twice.csv"), model1d)
+    assert back["action"].tolist() == [[2] * 8]
+    np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.arange(8), atol=1e-6)
+
+
+def test_a_recording_five_percent_off_the_model_step_is_resampled_linearly(tmp_path, model2d):
+    """A rig stepping 0.095 s is put on the 0.1 s grid (not read as 0.1 s steps), and a
+    continuous action ramping in time reads as the ramp at the grid's times, not a sample's."""
+    columns = _hand_made([0], steps=21, dt=0.095)
+    columns["a_v"] = 0.2 + 0.25 * columns["time"]
+    _write_raw(columns, tmp_path / "rig.csv")
+    with pytest.warns(UserWarning, match="from a median time step of 0.095 s to the model's 0.1"):
+        back = read_trials(tmp_path / "rig.csv", model2d)
+    grid = 0.1 * np.arange(20)  # 1.9 s of the 1.9 s recorded
+    assert back.shape == (1, 20)
+    np.testing.assert_allclose(back["time"][0].numpy(), grid, atol=1e-6)
+    np.testing.assert_allclose(back["action"][0, :, 0].numpy(), 0.2 + 0.25 * grid, atol=1e-6)
+    np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.cos(0.3) * grid, atol=1e-6)
+
+
+def test_the_same_recording_in_m_cm_and_mm_reads_alike(tmp_path, model2d):
+    """Positions, targets and speeds in cm or mm (time in ms) declared so read as in metres."""
+    metres = _hand_made([0, 1])
+    distances = ("x", "y", "target_x", "target_y", "v")
+    expected = read_trials(_write_recording(metres, tmp_path / "m.csv"), model2d)
+    for unit, factor in (("cm", 100.0), ("mm", 1000.0)):
+        columns = {k: v * factor if k in distances else v for k, v in metres.items()}
+        columns["time"] = metres["time"] * 1000.0
+        units = {k: unit for k in distances[:-1]} | {"v": f"{unit}/s", "time": "ms"}
+        back = read_trials(
+            _write_recording(columns, tmp_path / f"{unit}.csv"), model2d, units=units
+        )
+        for key in ("state", "target", "time", "mask"):
+            torch.testing.assert_close(back[key], expected[key], rtol=1e-6, atol=1e-6, msg=key)
+
+
+def test_positions_in_mm_declared_as_cm_are_refused(tmp_path, model2d):
+    """Read 10× too far, every column stays within the θ space's reach; only the steps'
+    regression on the velocity says so (a slope threshold of 30 let it through)."""
+    columns = _hand_made([0, 1])
+    for key in ("x", "y", "target_x", "target_y"):
+        columns[key] = columns[key] * 1000.0
+    units = {k: "cm" for k in ("x", "y", "target_x", "target_y")}
+    with pytest.raises(ValueError, match=r"field\(s\) 'x'/'y': each step moves 10× as far"):
+        read_trials(_write_recording(columns, tmp_path / "mm.csv"), model2d, units=units)
+
+
+def test_trials_keep_their_numbers_and_the_order_they_first_appear_in(tmp_path, model2d):
+    """Trials 7, 3 and 5.5 read in that order (not sorted), numbered as recorded (5.5 not
+    truncated to 5 beside the integers), each with its own rows."""
+    back = read_trials(_write_recording(_hand_made([7, 3, 5.5]), tmp_path / "t.csv"), model2d)
+    assert back["trial"].dtype == torch.float64
+    assert back["trial"][:, 0].tolist() == [7.0, 3.0, 5.5]
+    assert back["state"][:, 0, 0].tolist() == [0.0, 1.0, 2.0]  # trial i starts i m east
+    assert back["target"][:, 0, 0].tolist() == [1.0, 2.0, 3.0]
+
+
+def test_time_counts_from_each_trials_first_sample_as_recorded(tmp_path, model2d):
+    """A session clock (trials from 12.3 s and 22.3 s) reads as seconds since each trial's
+    start, the recorded jitter kept, not replaced by the model's grid."""
+    columns = _hand_made([0, 1], start=12.3, jitter=4e-4)
+    back = read_trials(_write_recording(columns, tmp_path / "t.csv"), model2d)
+    for i in range(2):
+        time = columns["time"][columns["trial"] == i]
+        assert torch.equal(back["time"][i], torch.tensor(time - time[0], dtype=torch.float32))
+
+
+@pytest.mark.parametrize(
+    "before, after",
+    [(3.0, -1.2), (3.5, -2.75)],
+    ids=["a turn of 2.1 rad in one sample", "a sign flip beyond ±π"],
+)
+def test_a_jump_across_plus_minus_pi_that_is_no_wrap_is_refused(tmp_path, model2d, before, after):
+    """Only an atan2 wrap (within ±π on both sides, under π/2 once 2π is taken off) is
+    unwrapped; a tracker's glitch is refused, not smoothed into a turn the agent never made."""
+    heading = np.where(np.arange(12) < 6, before, after)
+    path = _write_recording(_hand_made([0], heading=heading), tmp_path / "glitch.csv")
+    with pytest.raises(ValueError, match=r"trial 0, field 'heading': changes by .* at time 0\.6 s"):
+        read_trials(path, model2d)
 
 
 def test_a_trial_longer_than_the_task_allows_is_refused_naming_it(tmp_path, model2d, trials2d):
@@ -318,6 +479,24 @@ def _set(trial: int, sample: int, field: str, value: float):
     return corrupt
 
 
+def _blank(trial: int, sample: int, field: str):
+    def corrupt(columns):  # an empty CSV cell, as a spreadsheet exports a missing value
+        columns[field] = columns[field].astype(object)
+        columns[field][_rows(columns, trial)[sample]] = ""
+        return columns
+
+    return corrupt
+
+
+def _shift(trial: int, sample: int, field: str, by: float):
+    def corrupt(columns):
+        columns[field] = columns[field].astype(np.float64)
+        columns[field][_rows(columns, trial)[sample]] += by
+        return columns
+
+    return corrupt
+
+
 def _scale(factor: float, *fields: str):
     def corrupt(columns):
         for field in fields:
@@ -381,6 +560,8 @@ def _matrix_column(columns):
 MALFORMED = [
     ("nan gap in x", "2d", ".csv", _set(1, 2, "x", np.nan), ValueError,
      r"trial 1, field 'x': nan at time 0\.2 s \(sample 2\); expected finite"),
+    ("blank cell in x", "2d", ".csv", _blank(1, 2, "x"), ValueError,
+     r"trial 1, field 'x': nan at time 0\.2 s \(sample 2\); expected finite"),
     ("inf velocity", "2d", ".npz", _set(0, 1, "v", np.inf), ValueError,
      r"trial 0, field 'v': inf at time 0\.1 s"),
     ("nan time", "2d", ".npz", _set(1, 1, "time", np.nan), ValueError,
@@ -403,6 +584,8 @@ MALFORMED = [
      r"trial 1, field 'target_y': nan at time 0 s"),
     ("target moves", "2d", ".npz", _set(0, 2, "target_x", 9.0), ValueError,
      r"trial 0, field 'target_x': 9 at sample 2 differs from .*expected one value per trial"),
+    ("target drifts by 5 mm", "2d", ".csv", _shift(0, 2, "target_x", 0.005), ValueError,
+     r"trial 0, field 'target_x': .* at sample 2 differs from .*expected one value per trial"),
     ("trial of one sample", "2d", ".csv", _single_sample, ValueError,
      r"trial 2, field 'time': 1 sample\(s\); expected ≥ 2 per trial"),
     ("ragged arrays", "2d", ".npz", _short_column, ValueError,
@@ -411,6 +594,8 @@ MALFORMED = [
      r"column 'x' has shape \[\d+, 2\]; expected one value per time step"),
     ("control beyond bounds", "2d", ".csv", _set(1, 1, "a_w", 1.7), ValueError,
      r"trial 1, field 'a_w': 1\.7 at time 0\.1 s; expected a dimensionless control.*\[-1, 1\]"),
+    ("control just beyond bounds", "2d", ".csv", _set(1, 1, "a_w", 1.01), ValueError,
+     r"trial 1, field 'a_w': 1\.01 at time 0\.1 s; expected a dimensionless control"),
     ("action index 3", "1d", ".csv", _set(0, 1, "action", 3), ValueError,
      r"trial 0, field 'action': 3 at time 1 s; expected an action index, an integer in 0\.\.2"),
     ("fractional action", "1d", ".npz", _set(1, 0, "action", 1.5), ValueError,

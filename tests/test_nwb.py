@@ -32,10 +32,13 @@ def test_non_integer_trial_numbers_are_refused_before_writing(tmp_path):
     assert back["trial"][:, 0].tolist() == [3, 5, 7]
 
 
-def _lab_nwb(path, columns, centimetres=False, between_trials=False, without=(), short=()):
+def _lab_nwb(
+    path, columns, centimetres=False, between_trials=False, without=(), short=(), offset=0.0
+):
     """An NWB file laid out as the schema says, written the way a lab's rig might: positions
-    in cm declared by NWB's own ``conversion``, samples through the gaps between trials, a
-    series not exported, or one a sample short on its own clock."""
+    in cm declared by NWB's own ``conversion`` (from an origin ``offset`` m away), samples
+    through the gaps between trials, a series not exported, or one a sample short on its own
+    clock."""
     import datetime
     import uuid
 
@@ -64,8 +67,9 @@ def _lab_nwb(path, columns, centimetres=False, between_trials=False, without=(),
     scale = 100.0 if centimetres else 1.0
     behavior = nwb.create_processing_module("behavior", "behaviour")
     position = SpatialSeries(
-        name="position", data=np.stack([data["x"], data["y"]], -1) * scale, timestamps=stamps,
-        reference_frame="arena", unit="metres", conversion=1 / scale,
+        name="position", data=(np.stack([data["x"], data["y"]], -1) - offset) * scale,
+        timestamps=stamps, reference_frame="arena", unit="metres", conversion=1 / scale,
+        offset=offset,
     )  # fmt: skip
     behavior.add(Position(spatial_series=position, name="Position"))
     heading = SpatialSeries(
@@ -112,3 +116,18 @@ def test_a_rigs_nwb_file_is_read_as_nwb_means_it(tmp_path):
     _lab_nwb(tmp_path / "short.nwb", columns, short=("a_v",))
     with pytest.raises(ValueError, match=r"series 'a_v' has \d+ values but 'position' has \d+"):
         read_trials(tmp_path / "short.nwb", model)
+
+
+def test_an_nwb_series_reads_as_data_times_conversion_plus_offset(tmp_path):
+    """Positions in cm from an origin 0.5 m off the task's (NWB's ``offset``) read in metres
+    from the task's origin: the offset added after the conversion, not before, nor dropped."""
+    from irc_torchrl.data.io import trials_to_columns
+
+    model = Firefly2DModel()
+    columns = trials_to_columns(_numbered(model, [3.0, 5.0]), model)
+    _lab_nwb(tmp_path / "plain.nwb", columns)
+    _lab_nwb(tmp_path / "offset.nwb", columns, centimetres=True, offset=0.5)
+    expected = read_trials(tmp_path / "plain.nwb", model)
+    back = read_trials(tmp_path / "offset.nwb", model)
+    torch.testing.assert_close(back["state"], expected["state"], rtol=0, atol=1e-6)
+    assert torch.equal(back["mask"], expected["mask"])

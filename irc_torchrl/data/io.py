@@ -389,7 +389,7 @@ def _on_model_grid(
     else:
         warnings.warn(
             f"{source}: resampled every trial from a median time step of {step:.6g} s "
-            f"to the model's {model.dt} s (linear; actions nearest-previous)",
+            f"to the model's {model.dt} s (linear; discrete actions the previous sample)",
             stacklevel=3,
         )
     discrete = {trial_column}
