@@ -13,6 +13,7 @@ from irc_torchrl.config import (
     Firefly1DConfig,
     config_to_dict,
     load_config,
+    load_firefly2d_config,
     load_recording_fit_config,
     load_recovery2d_config,
     load_simulate_config,
@@ -68,6 +69,9 @@ def test_overrides_reach_nested_fields_with_types():
         ("q_iteration.n_envs=-4", "q_iteration.n_envs must be positive, got -4"),
         ("q_iteration.gamma=1.5", r"q_iteration.gamma must lie in \(0, 1\]"),
         ("fit.workers=0", "fit.workers must be positive, got 0"),
+        ("fit.n_screen=0", "fit.n_screen must be positive, got 0"),
+        ("fit.n_starts=0", "fit.n_starts must be positive, got 0"),
+        ("fit.max_iter=0", "fit.max_iter must be positive, got 0"),
         ("fit.workers=1.5", "fit.workers=1.5 is not a valid int"),
         ("agents.n_trials=[1", "override 'agents.n_trials=\\[1' is not valid YAML"),
     ],
@@ -196,3 +200,47 @@ def test_worker_processes_are_refused_off_the_cpu():
     with pytest.raises(ValueError, match="workers: processes share a fit between CPU cores; "
                                          "expected 1 on cuda:0, got 2"):  # fmt: skip
         check_workers(2, "cuda:0")
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("n_starts=17", "n_starts=17 exceeds n_screen=16"),
+        ("lapse=0.5", r"lapse \(the fitted rate's start\) must be in \(0, 0.5\)"),
+        ("calibrate=-1", "calibrate must be ≥ 0, got -1"),
+        ("particles=-1", "particles must be ≥ 0, got -1"),
+    ],
+)
+def test_recording_fit_settings_are_refused_just_past_their_bounds(override, message):
+    """Each bound of ``irc fit``'s settings is where it says: one start more than the screened
+    draws, a fitted lapse start at its ceiling 0.5, and −1 particles or calibrations fail."""
+    with pytest.raises(ValueError, match=message):
+        load_recording_fit_config([override])
+
+
+def test_recording_fit_settings_at_their_bounds_are_accepted():
+    """The values just inside those bounds load as given."""
+    config = load_recording_fit_config(["n_starts=16", "lapse=0.49", "calibrate=0", "particles=0"])
+    assert (config.n_starts, config.lapse, config.calibrate, config.particles) == (16, 0.49, 0, 0)
+
+
+def test_a_yaml_file_and_overrides_combine_with_the_override_last(tmp_path):
+    """The file's values replace the defaults and an override replaces the file's value."""
+    (tmp_path / "c.yaml").write_text("agents:\n  n_agents: 5\nfit:\n  max_iter: 9\n")
+    config = load_config(tmp_path / "c.yaml", ["agents.n_agents=7"])
+    assert (config.agents.n_agents, config.fit.max_iter, config.agents.n_trials) == (7, 9, 100)
+
+
+def test_a_quoted_flag_word_is_read_as_its_flag():
+    """A quoted ``'no'`` (a string to YAML) is false and ``'yes'`` true, as unquoted ones are."""
+    assert load_config(overrides=["flush_denormal='no'"]).flush_denormal is False
+    assert load_config(overrides=["flush_denormal='yes'"]).flush_denormal is True
+
+
+def test_a_list_override_is_cast_element_by_element():
+    """Each element of a list takes the type of the default's elements: ``32.0`` is the
+    integer 32, and a flag among widths is refused naming its index."""
+    hidden = load_firefly2d_config(overrides=["ddpg.hidden=[32.0, 16]"]).ddpg.hidden
+    assert hidden == [32, 16] and all(type(width) is int for width in hidden)
+    with pytest.raises(ValueError, match=r"ddpg.hidden\[1\]=True is not a valid int"):
+        load_firefly2d_config(overrides=["ddpg.hidden=[32, true]"])

@@ -259,3 +259,43 @@ def test_the_world_pays_inside_the_goal_radius_of_theta_and_charges_its_move_cos
     action = torch.tensor([STOP, STOP, RIGHT])
     reward = model.reward(state, target, action, model.stops(action, torch.zeros(3, 1)), theta)
     torch.testing.assert_close(reward, torch.tensor([[10.0], [0.0], [-0.6]]))
+
+
+def test_reset_redraws_theta_even_from_a_tensordict_that_holds_one():
+    """A ``theta`` in the TensorDict given to ``reset`` is the ending trial's: it is not read,
+    so a manual ``env.reset(td)`` draws a new θ from the prior (reading it would hold θ)."""
+    env = Firefly1DEnv(batch_size=(8,), seed=0)
+    first = env.reset()
+    again = env.reset(first.clone())
+    assert (again["theta"][:, 0] != first["theta"][:, 0]).all()
+
+
+def test_the_world_pays_by_the_task_theta_not_the_agents():
+    """The world's reward reads ``task_theta``: a stop at the start pays 10 exactly where the
+    target is within the task's radius 2.0 (not the agent's 0.5) and a move costs the task's
+    0.8 (not the agent's 0.05); 256 trials, seed 0."""
+    space = SPACE.free()
+    agent = space.from_dict({"goal_radius": 0.5, "move_cost": 0.05})
+    task = space.from_dict({"goal_radius": 2.0, "move_cost": 0.8})
+    model = Firefly1DModel(theta_space=space)
+    env = Firefly1DEnv(model=model, batch_size=(256,), theta=agent, task_theta=task, seed=0)
+    td = env.reset()
+    action = torch.where(torch.arange(256) % 2 == 0, STOP, RIGHT)
+    out = env.step(td.set("action", action))["next"]
+    inside = (td["target"].abs() < 2.0).float() * 10
+    expected = torch.where((action == STOP).unsqueeze(-1), inside, torch.tensor(-0.8))
+    torch.testing.assert_close(out["reward"], expected)
+    assert 0 < inside[::2].count_nonzero() < 128  # the radii disagree on some stops
+
+
+def test_a_stop_on_the_last_step_terminates_without_truncating():
+    """At the time limit a trial terminates (nothing follows to bootstrap from) and is also
+    truncated, unless the agent stopped there: then it ended by its own stop only."""
+    model = Firefly1DModel(max_steps=3)
+    env = Firefly1DEnv(batch_size=(2,), model=model, theta=SPACE.default())
+    actions = torch.tensor([[RIGHT, RIGHT], [RIGHT, RIGHT], [STOP, RIGHT]])
+    last = run(env, actions)[3]["next"]
+    assert last["done"].squeeze(-1).tolist() == [True, True]
+    assert last["terminated"].squeeze(-1).tolist() == [True, True]
+    assert last["truncated"].squeeze(-1).tolist() == [False, True]
+    assert last["step"].squeeze(-1).tolist() == [3, 3]

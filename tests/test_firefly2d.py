@@ -421,3 +421,40 @@ def test_targets_are_uniform_in_distance_and_in_angle_on_both_sides_of_the_headi
         ordered = ((values.sort().values - a) / (b - a)).numpy()
         uniform = (torch.arange(1, len(ordered) + 1, dtype=torch.float64) / len(ordered)).numpy()
         assert abs(ordered - uniform).max() < 0.015
+
+
+def test_the_world_scores_a_stop_at_the_state_it_was_taken_in_by_the_task_theta():
+    """The world's reward of a stop at ``min_steps`` reads the true state before the step and
+    the task's radius 0.5 and effort cost 0.05: leaving the goal at full speed still pays, and
+    a stop 0.3 from the target pays though the agent's radius 0.2 would not."""
+    agent = SPACE.from_dict({"goal_radius": 0.2, "effort_cost": 0.0})
+    task = SPACE.from_dict({"goal_radius": 0.5, "effort_cost": 0.05})
+    env = Firefly2DEnv(batch_size=(2,), theta=agent, task_theta=task, seed=0)
+    td = env.reset()
+    td["target"] = torch.tensor([[1.0, 0.0]] * 2)
+    # 0.45 from the target, moving away at 1.6 (0.61 after the step); 0.3 from it, at rest
+    td["state"] = torch.tensor([[1.45, 0.0, 0.0, 1.6, 0.0], [1.3, 0.0, 0.0, 0.0, 0.0]])
+    td["step"] = torch.full((2, 1), MODEL.min_steps)
+    td["action"] = torch.tensor([[0.0, 0.5]] * 2)
+    out = env.step(td)["next"]
+    torch.testing.assert_close(out["reward"], torch.full((2, 1), 10 - 0.05 * 0.25))
+    assert (out["state"][0, :2] - td["target"][0]).norm() > 0.5
+    assert out["terminated"].all() and not out["truncated"].any()
+
+
+def test_the_first_observation_is_noisy_with_the_task_variance():
+    """The observation at a reset carries the task's observation noise as every later one does
+    (5000 draws of the velocity observation at rest, 4% tolerance on the std)."""
+    task = SPACE.from_dict({"obs_sigma_v": 0.8, "obs_sigma_w": 0.3})
+    env = Firefly2DEnv(batch_size=(5000,), theta=SPACE.default(), task_theta=task, seed=0)
+    td = env.reset()
+    noise = td["observation"] - MODEL.observe(td["state"], td["task_theta"])
+    torch.testing.assert_close(noise.std(0), torch.tensor([0.8, 0.3]), rtol=0.04, atol=0)
+
+
+def test_an_action_outside_the_bounds_is_refused():
+    """A finite action outside ``[-1, 1]²`` is refused with the range it had, not clipped."""
+    env = Firefly2DEnv(batch_size=(2,))
+    td = env.reset().set("action", torch.tensor([[1.5, 0.0], [0.5, 0.0]]))
+    with pytest.raises(ValueError, match=r"within the bounds .* got values in \[0.0, 1.5\]"):
+        env.step(td)

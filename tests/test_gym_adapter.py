@@ -97,3 +97,15 @@ def test_unseeded_adapters_draw_different_trials():
     first, _ = Firefly2DGymEnv().reset()
     second, _ = Firefly2DGymEnv().reset()
     assert not np.array_equal(first, second)
+
+
+def test_step_reports_the_worlds_state_and_reward_under_the_task_theta():
+    """``info["state"]`` is the true state (noise-free task: v = 0.8 a_v, the task's gain, not
+    the agent's 1.5 its belief predicts) and the reward is the world's, −0.05‖a‖² per move."""
+    task = {"g_v": 0.8, "sigma_v": 0.0, "sigma_w": 0.0, "effort_cost": 0.05}
+    env = Firefly2DGymEnv(theta={"g_v": 1.5, "effort_cost": 0.0}, task_theta=task)
+    env.reset(seed=0)
+    _, reward, terminated, truncated, info = env.step(np.array([1.0, 0.5], dtype=np.float32))
+    assert info["state"][3] == pytest.approx(0.8, abs=1e-2)
+    assert reward == pytest.approx(-0.05 * 1.25, rel=1e-6)
+    assert not terminated and not truncated

@@ -371,3 +371,80 @@ def test_draws_for_fisher_scoring_carry_the_motor_noises_information():
     torch.testing.assert_close(
         (score**2).mean(0), torch.full((2,), 2.0, dtype=torch.float64), rtol=0.04, atol=0
     )
+
+
+def _actor_with_bounds(low, high, hidden=(8,), activation="softplus"):
+    """A small 2D actor whose action spec has the given (non-symmetric) bounds, seed 0."""
+    from torchrl.data import Bounded
+
+    from irc_torchrl.envs.firefly2d import Firefly2DModel
+    from irc_torchrl.modules.actor_critic import make_actor
+
+    model = Firefly2DModel()
+    model.action_spec = Bounded(torch.tensor(low), torch.tensor(high), shape=(2,))
+    torch.manual_seed(0)
+    return make_actor(model, hidden=hidden, activation=activation), model
+
+
+def test_actor_and_feature_policy_squash_into_the_specs_own_bounds():
+    """Both paths map the network's output p to ``low + (high − low)(1 + tanh p)/2`` of the
+    spec's bounds, here [0, 2] × [−2, 0.5], not [−1, 1]; features are wide enough to come
+    within 0.05 of every bound."""
+    from tensordict import TensorDict
+
+    from irc_torchrl.modules.actor_critic import FeaturePolicy
+
+    actor, model = _actor_with_bounds([0.0, -2.0], [2.0, 0.5])
+    low, high = torch.tensor([0.0, -2.0]), torch.tensor([2.0, 0.5])
+    mlp = actor.module[1].module
+    g = torch.Generator().manual_seed(1)
+    features = 20 * torch.randn(256, mlp[0].in_features, generator=g)
+    expected = low + (high - low) * (1 + torch.tanh(mlp(features))) / 2
+    torch.testing.assert_close(FeaturePolicy(actor)(features), expected)
+    squashed = actor.module[2](actor.module[1](TensorDict(features=features, batch_size=[256])))
+    torch.testing.assert_close(squashed["action"], expected)
+    assert (expected >= low).all() and (expected <= high).all()
+    assert ((expected - low).abs().min(0).values < 0.05).all()
+    assert ((expected - high).abs().min(0).values < 0.05).all()
+
+
+def test_a_float32_feature_policy_runs_its_network_in_float32_and_answers_in_float64():
+    """``dtype=float32`` rounds the network (float64 input) to float32 and squashes its output
+    in float64, as does ``censored_action_model(..., "float32")``; ``"float64"`` keeps float64
+    throughout (the two differ by float32 rounding: between 1e-9 and 1e-4)."""
+    from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
+
+    actor, model = _actor_with_bounds([-1.0, -1.0], [1.0, 1.0])
+    mlp = actor.module[1].module
+    features = torch.randn(64, mlp[0].in_features, dtype=torch.float64)
+    out = FeaturePolicy(actor, torch.float32)(features)
+    assert out.dtype == torch.float64
+    expected = torch.tanh(mlp(features.float()).double())
+    torch.testing.assert_close(out, expected, atol=1e-12, rtol=0)
+    exact = FeaturePolicy(actor)(features)
+    assert exact.dtype == torch.float64
+    assert 1e-9 < (out - exact).abs().max() < 1e-4
+    for name, reference in (("float32", out), ("float64", exact)):
+        scored = censored_action_model(actor, model, name).actor(features)
+        torch.testing.assert_close(scored, reference, atol=1e-12, rtol=0)
+
+
+def test_censored_action_model_starts_from_the_motor_noise_it_is_given():
+    """``motor_noise`` is where the fit starts: the initial nuisance is its log per dimension."""
+    from irc_torchrl.modules.actor_critic import censored_action_model
+
+    actor, model = _actor_with_bounds([-1.0, -1.0], [1.0, 1.0])
+    action_model = censored_action_model(actor, model, motor_noise=0.3)
+    noise = action_model.motor_noise(action_model.nuisance_init)
+    torch.testing.assert_close(noise, torch.full((2,), 0.3))
+
+
+def test_actor_and_critic_use_the_activation_they_are_given():
+    """The networks are built with the named activation (here ``tanh``), not the default."""
+    from irc_torchrl.modules.actor_critic import make_critic
+
+    actor, model = _actor_with_bounds([-1.0, -1.0], [1.0, 1.0], hidden=(8, 8), activation="tanh")
+    critic = make_critic(model, hidden=(8, 8), activation="tanh")
+    for network in (actor, critic):
+        kinds = {type(m) for m in network.modules()}
+        assert torch.nn.Tanh in kinds and torch.nn.Softplus not in kinds
