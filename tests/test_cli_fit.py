@@ -16,13 +16,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 from test_checkpoint import TINY as TINY_TRAIN
 
 from irc_torchrl.algorithms import recordings
+from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.recordings import format_fit
 from irc_torchrl.cli import build_parser, main
 from irc_torchrl.data.io import read_trials
 from irc_torchrl.envs.firefly2d import Firefly2DModel, firefly2d_theta_space
+from irc_torchrl.objectives.fisher import Intervals
+from irc_torchrl.theta import Parameter, ThetaSpace
 
 SPACE = firefly2d_theta_space()
 #: a GPU that is asked for is refused only where there is none
@@ -644,3 +648,148 @@ def test_a_recovery_refused_for_its_checkpoint_leaves_no_folder(tmp_path, capsys
     argv = ["recover", "--out", str(out), "--quiet", f"checkpoint={tmp_path / 'none.pt'}"]
     assert main(argv) == 2
     assert "none.pt" in capsys.readouterr().err and not out.exists()
+
+
+def test_the_worst_trials_are_ranked_by_log_likelihood_per_recorded_step():
+    """Trials 10-13 recorded over 1, 4, 2 and 4 steps with log-likelihoods −2, −6, −1, −20:
+    per step −2, −1.5, −0.5, −5, so the worst three are 13, 10, 11 (not the worst totals
+    13, 11, 10), beside the lower median of all (−2), each with its own trial number."""
+    mask = torch.tensor([[1, 0, 0, 0], [1, 1, 1, 1], [1, 1, 0, 0], [1, 1, 1, 1]], dtype=torch.bool)
+    trial = torch.tensor([10.0, 11.0, 12.0, 13.0]).unsqueeze(-1).expand(4, 4)
+    recording = TensorDict({"mask": mask, "trial": trial}, batch_size=[4, 4])
+    worst = recordings._worst_trials(recording, torch.tensor([-2.0, -6.0, -1.0, -20.0]))
+    assert [(w["trial"], w["steps"], w["log_likelihood"]) for w in worst] == [
+        (13.0, 4, -20.0),
+        (10.0, 1, -2.0),
+        (11.0, 4, -6.0),
+    ]
+    assert [w["per_step"] for w in worst] == [-5.0, -2.0, -1.5]
+    assert {w["median_per_step"] for w in worst} == {-2.0}
+
+
+def test_traded_off_pairs_are_those_of_large_absolute_correlation_most_correlated_first():
+    """|r| ≥ 0.8 flags a pair either way, the strongest first; each pair once, the diagonal
+    and undefined correlations never."""
+    correlation = {
+        "a": {"a": 1.0, "b": -0.9, "c": 0.85, "d": None},
+        "b": {"a": -0.9, "b": 1.0, "c": 0.5, "d": float("nan")},
+        "c": {"a": 0.85, "b": 0.5, "c": 1.0, "d": -0.79},
+        "d": {"a": None, "b": float("nan"), "c": -0.79, "d": 1.0},
+    }
+    assert recordings._traded_off(correlation) == "a ~ b (r -0.90), a ~ c (r +0.85)"
+    assert recordings._traded_off({"a": {"a": 1.0}}) == ""
+
+
+def _fit_of(hat: list[float]) -> FitResult:
+    """A fit of one free parameter ``a`` per agent at ``hat``, intervals ±0.15."""
+    theta = torch.tensor(hat, dtype=torch.float64).unsqueeze(-1)
+    n = len(hat)
+    intervals = Intervals(
+        std=torch.full((n, 1), 0.15 / 1.96, dtype=torch.float64),
+        low=theta - 0.15,
+        high=theta + 0.15,
+        identified=torch.ones(n, 1, dtype=torch.bool),
+        covariance=torch.zeros(n, 1, 1),
+        profiled=torch.zeros(n, 1, dtype=torch.bool),
+    )
+    return FitResult(
+        theta_hat=theta,
+        nuisance=torch.zeros(n, 1),
+        log_likelihood=torch.zeros(n),
+        intervals=intervals,
+        converged=torch.ones(n, dtype=torch.bool),
+        iterations=1,
+        names=["a"],
+        information=torch.eye(2).expand(n, 2, 2),
+    )
+
+
+def test_truth_scores_pair_each_known_truth_with_its_own_recordings_fit():
+    """Three recordings, the truth known for the last two (1.0 and 2.0, fitted 1.1 and 2.2):
+    errors 0.1 and 0.2 (median 0.15), only the first inside ±0.15; the first recording's fit
+    (5.0, truth unknown) is left out; no truth at all scores nothing."""
+    space = ThetaSpace([Parameter("a", 0.0, 10.0, 1.0)])
+    truths = [None, torch.tensor([1.0]), torch.tensor([2.0])]
+    scores = recordings._truth_scores(space, truths, _fit_of([5.0, 1.1, 2.2]))
+    assert [agent["theta_hat"]["a"] for agent in scores["agents"]] == pytest.approx([1.1, 2.2])
+    assert scores["parameters"]["a"]["median_abs_error"] == pytest.approx(0.15)
+    assert scores["parameters"]["a"]["coverage"] == 0.5
+    assert recordings._truth_scores(space, [None, None], _fit_of([1.0, 2.0])) is None
+
+
+def test_recordings_are_grouped_by_their_number_of_trials():
+    """Recordings of 3, 5, 3 and 3 trials: two batches, in the order first seen."""
+    shapes = [(3, 7), (5, 7), (3, 9), (3, 7)]
+    groups = recordings._by_trial_count([TensorDict({}, batch_size=s) for s in shapes])
+    assert groups == {3: [0, 2, 3], 5: [1]}
+    assert list(groups) == [3, 5]
+
+
+def test_fit_space_holds_the_given_values_and_defaults_and_frees_the_rest():
+    """Without --free every free parameter not given a value is fitted; the held ones keep
+    their given values, the others their defaults."""
+    space = firefly2d_theta_space()
+    fitted = recordings.fit_space(space, None, {"g_v": 1.1, "goal_radius": 0.3})
+    assert fitted.free_names == [n for n in space.free_names if n not in ("g_v", "goal_radius")]
+    assert fitted.fixed["g_v"] == pytest.approx(1.1) and fitted.fixed["goal_radius"] == 0.3
+    chosen = recordings.fit_space(space, ["g_w"], {"g_v": 1.1})
+    assert chosen.free_names == ["g_w"]
+    assert chosen.fixed["g_v"] == pytest.approx(1.1)
+    for name in set(space.free_names) - {"g_v", "g_w"}:
+        assert chosen.fixed[name] == pytest.approx(space[name].default), name
+
+
+def test_the_simulated_truth_is_the_one_irc_simulate_wrote_for_that_file(tmp_path):
+    """A summary of irc simulate names each file's θ*: a file reads its own, a file it does
+    not name none; a summary of another command gives no truth."""
+    space = firefly2d_theta_space()
+    first = {**space.to_dict(space.default()), "g_v": 1.1}
+    second = {**first, "g_v": 1.5}
+    agents = [{"file": "a.csv", "theta_true": first}, {"file": "b.csv", "theta_true": second}]
+    summary = {"command": "simulate", "agents": agents}
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    truth = recordings._simulated_truth(tmp_path / "b.csv", space)
+    assert float(truth[space.index("g_v")]) == pytest.approx(1.5)
+    assert recordings._simulated_truth(tmp_path / "c.csv", space) is None
+    (tmp_path / "summary.json").write_text(json.dumps({**summary, "command": "fit"}))
+    assert recordings._simulated_truth(tmp_path / "b.csv", space) is None
+
+
+def _agent(file: str, converged: bool, truth: dict | None = None) -> dict:
+    """One recording's entry of an irc fit summary, g_v and g_w fitted, g_w unidentified."""
+    entry = {
+        "file": file, "converged": converged, "n_trials": 20, "n_steps": 400,
+        "log_likelihood": -12.5, "theta_hat": {"g_v": 1.375, "g_w": 0.75},
+        "ci_low": {"g_v": 1.25, "g_w": 0.5}, "ci_high": {"g_v": 1.5, "g_w": 1.0},
+        "identified": {"g_v": True, "g_w": False}, "motor_noise": [0.1, 0.2], "lapse": 0.0,
+    }  # fmt: skip
+    return entry if truth is None else {**entry, "theta_true": truth}
+
+
+def test_format_fit_shows_each_truth_and_identification_and_counts_known_unconverged_fits():
+    """The truth column holds θ*, not θ̂; an unidentified parameter reads NO; the coverage line
+    counts the files whose truth is known, and of those the fits that did not converge."""
+    agents = [
+        _agent("a.csv", True, {"g_v": 1.4, "g_w": 0.8}),
+        _agent("b.csv", False),
+        _agent("c.csv", False, {"g_v": 1.2, "g_w": 0.9}),
+    ]
+    summary = {
+        "method": "map", "free": ["g_v", "g_w"], "units": {"g_v": "m/s"}, "agents": agents,
+        "parameters": {"g_v": {"coverage": 0.5}, "g_w": {"coverage": 1.0}},
+    }  # fmt: skip
+    lines = format_fit(summary).splitlines()
+    rows = [line.split() for line in lines if line.split()[0] in ("g_v", "g_w")]
+    assert rows[:2] == [
+        ["g_v", "1.375", "[1.25,", "1.5]", "1.4", "yes", "m/s"],
+        ["g_w", "0.75", "[0.5,", "1]", "0.8", "NO"],
+    ]
+    assert rows[2:4] == [
+        ["g_v", "1.375", "[1.25,", "1.5]", "yes", "m/s"],
+        ["g_w", "0.75", "[0.5,", "1]", "NO"],
+    ]
+    assert lines[-1] == (
+        "map: truth inside the 95% interval (fraction of the 2 files whose truth is known): "
+        "g_v 0.50, g_w 1.00; 1 of these fits did NOT converge, and an interval of a fit that "
+        "did not converge may span all the data allow"
+    )

@@ -181,6 +181,11 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
     assert written["seed"] == 3 and written["agents"]["n_agents"] == 3
     for figure in ("q_function.png", "recovery.png", "dp_comparison.png"):
         assert (tmp_path / "a" / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the DP ratios: the grid's mean learned over mean optimal return, and the lowest per θ
+    with np.load(tmp_path / "a" / "figures.npz") as arrays:
+        learned, optimal = arrays["dp_learned"], arrays["dp_optimal"]
+    assert summary["dp_ratio"] == pytest.approx(learned.mean() / optimal.mean(), rel=1e-6)
+    assert summary["dp_ratio_min_per_theta"] == pytest.approx(min(learned / optimal), rel=1e-6)
     # irc report redraws every figure from summary.json and figures.npz, pixel for pixel
     drawn = {f: imread(tmp_path / "a" / f) for f in ("q_function.png", "dp_comparison.png")}
     for figure in tmp_path.joinpath("a").glob("*.png"):

@@ -9,6 +9,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from irc_torchrl.algorithms.demo import dp_comparison
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.qiteration import (
     FittedQIteration,
@@ -401,3 +402,28 @@ def test_training_hands_the_solver_its_settings_and_the_stops_and_next_states(mo
         assert torch.equal(following[alive], features[:, 1:][alive])
     share = torch.bincount(solver.batches[1]["action"], minlength=3) / 640
     assert (share - 1 / 3).abs().max() < 0.08, share
+
+
+def test_dp_comparison_scores_a_policy_on_a_grid_spanning_each_free_parameters_range():
+    """The θ grid is every pairing of n_grid points from each free parameter's low to high end
+    (the fixed ones at their defaults), the starts span ±target_range, the optimum is the best
+    action's DP value, and a policy that always stops earns the DP value of stopping at once."""
+    model = Firefly1DModel(max_steps=6)
+    space = model.theta_space
+
+    class AlwaysStop(torch.nn.Module):
+        def forward(self, features):
+            return torch.nn.functional.one_hot(torch.full(features.shape[:-1], STOP), 3).float()
+
+    theta, starts, optimal, learned = dp_comparison(model, AlwaysStop(), n_grid=3, n_starts=5)
+    free = [space.index(n) for n in space.free_names]
+    ends = [torch.linspace(space[n].low, space[n].high, 3).tolist() for n in space.free_names]
+    grid = torch.tensor(sorted(map(tuple, theta[:, free].tolist())))
+    torch.testing.assert_close(grid, torch.tensor(sorted(itertools.product(*ends))))
+    fixed = [i for i in range(space.dim) if i not in free]
+    assert torch.equal(theta[:, fixed], space.default(torch.float64)[fixed].expand(9, -1))
+    assert starts.tolist() == pytest.approx([-12.0, -6.0, 0.0, 6.0, 12.0])
+    values = optimal_values(model, theta, starts)
+    torch.testing.assert_close(optimal, values.max(-1).values)
+    torch.testing.assert_close(learned, values[..., STOP], atol=1e-6, rtol=1e-6)
+    assert (learned < optimal - 1e-3).any()  # stopping at once is not always best

@@ -464,3 +464,108 @@ def test_pursuit_acts_on_the_coasted_belief_as_its_rule_says():
     assert action[0, 1].item() == pytest.approx(0.606, abs=1e-3)
     assert action[1, 0] == 0 and action[2, 0].item() == pytest.approx(0.1 / 0.12)
     assert action[3].tolist() == pytest.approx([0.2, 1.0])
+
+
+def _scripted(forward, turn=lambda td: torch.zeros_like(td["step"], dtype=torch.float32)):
+    """A policy whose controls are ``forward(td)`` and ``turn(td)``, each ``[*B, 1]``."""
+
+    def policy(td):
+        return td.set("action", torch.cat([forward(td), turn(td)], -1).float())
+
+    return policy
+
+
+def _stop_at(step):
+    """Forward control 0.5 until ``step``, then 0 (a stop, at ``step ≥ min_steps``)."""
+    return _scripted(lambda td: torch.where(td["step"] >= step, 0.0, 0.5).float())
+
+
+def test_evaluation_scores_the_first_trial_of_each_row_by_the_goal_the_world_sets():
+    """A stop counts as a success only inside the task's goal radius, per θ in grid order;
+    the return and length are those of each row's first trial alone."""
+    # the target 0.3 from the start, in any direction
+    model = Firefly2DModel(target_distance=(0.3, 0.3), target_angle=math.pi)
+    space = model.theta_space
+    # no process noise: a forward control of 0 stands still; no effort cost: the reward alone
+    quiet = {"sigma_v": 0.0, "sigma_w": 0.0, "effort_cost": 0.0}
+    wide = space.from_dict({**quiet, "goal_radius": 0.35})
+    narrow = space.from_dict({**quiet, "goal_radius": 0.2})
+    # standing still at the start and stopping as soon as allowed: inside 0.35, not 0.2
+    metrics = evaluate_policy(
+        model, _stop_at(0), torch.stack([wide, narrow, wide]), trials_per_theta=8, seed=0
+    )
+    assert metrics["per_theta_success"] == [1.0, 0.0, 1.0]
+    assert metrics["success_rate"] == pytest.approx(2 / 3)
+    # one reward per successful trial (the rollout runs on through later trials)
+    assert metrics["per_theta_return"] == pytest.approx(
+        [model.reward_value, 0.0, model.reward_value]
+    )
+    assert metrics["mean_length"] == model.min_steps + 1  # steps 0..min_steps
+
+
+def test_theta_sensitivity_is_the_mean_absolute_change_over_each_parameters_range():
+    """Each free parameter moved from its low to its high end, at every visited step: the mean
+    absolute change of each control (a sign that flips with the step is not averaged away)."""
+    model = Firefly2DModel()
+    space = model.theta_space
+    g_v, g_w = space.index("g_v"), space.index("g_w")
+
+    def forward(td):  # 0.5 ± 0.1 g_v, its sign flipping every step, and a stop at step 3
+        sign = 1.0 - 2.0 * (td["step"] % 2).float()
+        moving = 0.5 + 0.1 * td["theta"][..., g_v : g_v + 1] * sign
+        return torch.where(td["step"] >= 3, 0.0, moving).float()
+
+    policy = _scripted(forward, lambda td: 0.1 * td["theta"][..., g_w : g_w + 1])
+    change = theta_sensitivity(model, policy, space.default()[None], trials_per_theta=2, seed=0)
+    assert list(change) == space.free_names
+    span = {name: space[name].high - space[name].low for name in ("g_v", "g_w")}
+    # a_v moves at steps 0, 1, 2 of the four visited (0..3), by 0.1 × the span of g_v
+    assert change["g_v"] == pytest.approx([0.1 * span["g_v"] * 3 / 4, 0.0], abs=1e-6)
+    assert change["g_w"] == pytest.approx([0.0, 0.1 * span["g_w"]], abs=1e-6)
+    for name in set(space.free_names) - {"g_v", "g_w"}:
+        assert change[name] == [0.0, 0.0], name
+
+
+def test_stop_sharpness_reads_the_control_the_step_before_the_stop():
+    """The forward control one step before the stop and at it, a stop on the last step
+    counted as a stop."""
+    model = Firefly2DModel()
+    theta = model.theta_space.default()[None]
+
+    def slowing(td):  # 0.9, 0.7, 0.5, then a stop at step 3
+        return torch.where(td["step"] >= 3, 0.0, 0.9 - 0.2 * td["step"]).float()
+
+    sharp = stop_sharpness(model, _scripted(slowing), theta, trials_per_theta=2, seed=0)
+    assert sharp == pytest.approx({"stopped": 1.0, "a_v_before": 0.5, "a_v_stop": 0.0, "drop": 0.5})
+    late = stop_sharpness(model, _stop_at(model.max_steps - 1), theta, trials_per_theta=2, seed=0)
+    assert late == pytest.approx({"stopped": 1.0, "a_v_before": 0.5, "a_v_stop": 0.0, "drop": 0.5})
+
+
+def test_theta_grid_pairs_the_strata_at_random_points_in_a_random_order():
+    """Each free parameter's strata in its own random order, each point at a random place
+    inside its stratum (neither the diagonal of the strata nor their centres)."""
+    space = Firefly2DModel().theta_space
+    grid = theta_grid(space, 8, seed=0)
+    free = [space.index(n) for n in space.free_names]
+    u = (grid[:, free] - space.low()[free]) / (space.high()[free] - space.low()[free]) * 8
+    strata, offset = u.floor(), u - u.floor()
+    assert len({tuple(col.tolist()) for col in strata.T}) == len(free)  # orders all differ
+    assert not any(torch.equal(col, torch.arange(8.0)) for col in strata.T)
+    assert offset.std() > 0.1 and ((offset - 0.5).abs() > 1e-3).any()
+    fixed = [space.index(n) for n in space.fixed]
+    assert torch.equal(grid[:, fixed], space.default()[fixed].expand(8, -1))
+
+
+def test_stop_sharpness_has_no_control_before_a_stop_on_a_trials_first_step():
+    """Where a stop may come at once (min_steps 0), a trial stopped on its first step has no
+    step before it: it counts as a stop, and no control before it is read (the rollout's last
+    step, in a later trial, was)."""
+    model = Firefly2DModel(min_steps=0)
+    theta = model.theta_space.default()[None]
+
+    def at_once(td):
+        a_v = torch.where(td["step"] == 0, 0.0, 0.7).float()
+        return td.set("action", torch.cat([a_v, torch.zeros_like(a_v)], -1))
+
+    sharp = stop_sharpness(model, at_once, theta, trials_per_theta=2, seed=0)
+    assert sharp == {"stopped": 1.0, "a_v_before": None, "a_v_stop": 0.0, "drop": None}

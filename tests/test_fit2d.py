@@ -4,6 +4,8 @@ Fixed seeds throughout; tolerances are stated where they are asserted.
 """
 
 import itertools
+import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,16 +13,19 @@ import torch
 from matplotlib.image import imread
 from scipy.stats import chi2
 
+from irc_torchrl.algorithms import recover2d
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import expected_intervals, fit_theta, score_check
 from irc_torchrl.algorithms.recover2d import (
     RECORDED,
     Recovery2DConfig,
+    belief_agreement,
     format_recovery,
     recover_firefly2d,
     simulate_recovery_agents,
     write_recovery,
 )
+from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.cli import main
 from irc_torchrl.config import RecordingFitConfig
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
@@ -122,13 +127,20 @@ def test_marginal_recovers_the_agents_beliefs(recovery):
     assert marginal["belief_error_correlation"] > hard["belief_error_correlation"]
 
 
-def test_summary_scores_both_groups_of_agents(recovery):
-    _, summary, _ = recovery
+def test_summary_scores_both_groups_of_agents(recovery, shipped):
+    trials, summary, fits = recovery
     assert summary["mistaken"] == [False, False, True]
     for entry in summary["methods"].values():
         assert set(entry["by_group"]) == {"prior", "mistaken"}
         for stats in entry["parameters"].values():
             assert 0 <= stats["coverage"] <= 1 and stats["median_ci_width"] >= 0
+    # each group scores its own agents: the first two (the prior's), then the third
+    space, truth = shipped[1].theta_space, trials["theta"][:, 0, 0]
+    for method, result in fits.items():
+        by_group = summary["methods"][method]["by_group"]
+        for group, rows in (("prior", [0, 1]), ("mistaken", [2])):
+            own = score_recovery(space.free_names, space.names, truth[rows], result.select(rows))
+            assert by_group[group] == own["parameters"], (method, group)
 
 
 def test_report_redraws_a_recovery_folders_belief_figures(recovery, tmp_path, capsys):
@@ -420,3 +432,101 @@ def test_recover_config_yaml_equals_the_embedded_default_and_checks_keys():
     with pytest.raises(ValueError, match="components: expected 1 or more than the belief's 5"):
         load_recovery2d_config(None, ["components=3"])
     assert load_recovery2d_config(None, ["calibration_tail=own"]).calibration_tail == "own"
+
+
+def test_belief_agreement_pools_x_and_y_and_correlates_errors_from_the_true_state():
+    """Three recorded steps and one unrecorded (wild values): positions pooled over x and y;
+    errors (belief − state) over x, y and heading; speeds and the unrecorded step left out."""
+    state = torch.tensor([[0, 0, 0, 0, 0], [1, 2, 0.5, 0, 0], [3, 1, 1, 0, 0], [100, -50, 3, 0, 0]])
+    true_error = torch.tensor(
+        [[0.1, -0.2, 0.05, 5, -5], [-0.1, 0.1, 0, -5, 5], [0.2, 0, -0.1, 5, 5], [9, 9, 9, 9, 9]]
+    )
+    recovered_error = torch.tensor(
+        [[0.2, -0.1, -0.05, -5, 5], [-0.1, 0.3, 0.1, 5, -5], [0.1, 0, -0.2, 5, 5], [-9, 0, 4, 0, 1]]
+    )
+    mask = torch.tensor([True, True, True, False])
+    true, recovered = state + true_error, state + recovered_error
+    shaped = [x.reshape(1, 1, *x.shape) for x in (recovered, true, state, mask)]
+    agreement = belief_agreement(*shaped)
+    rec, tru = recovered[:3, :2].flatten().numpy(), true[:3, :2].flatten().numpy()
+    errors = recovered_error[:3, :3].flatten().numpy(), true_error[:3, :3].flatten().numpy()
+    assert agreement["position_correlation"] == pytest.approx(np.corrcoef(rec, tru)[0, 1])
+    assert agreement["belief_error_correlation"] == pytest.approx(np.corrcoef(*errors)[0, 1])
+    # by hand, about the means 0.0278 and 0.0056: 0.1161 / √(0.2056 × 0.1222) = 0.7325
+    assert agreement["belief_error_correlation"] == pytest.approx(0.7325, abs=1e-4)
+
+
+def test_mistaken_agents_live_in_the_default_world_and_prior_agents_in_their_own(shipped):
+    """θ* of every agent drawn from the prior by the seed; the first n_prior_agents act in
+    a world of their own θ*, the mistaken ones in the task's default world."""
+    actor, model, _ = shipped
+    config = Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=2, n_trials=2, seed=5)
+    trials, theta_true, mistaken = simulate_recovery_agents(model, actor, config)
+    space = model.theta_space
+    drawn = space.sample((3,), generator=torch.Generator().manual_seed(5))
+    assert torch.equal(theta_true, drawn) and mistaken.tolist() == [False, True, True]
+    assert torch.equal(trials["theta"], drawn[:, None, None].expand_as(trials["theta"]))
+    world = trials["task_theta"]
+    assert torch.equal(world[0], drawn[0].expand_as(world[0]))
+    assert torch.equal(world[1:], space.default().expand_as(world[1:]))
+    assert not torch.equal(drawn[1:], space.default().expand(2, -1))
+
+
+def test_format_recovery_prints_each_figure_from_its_own_field():
+    """Every number of a recovery's table comes from the field it names."""
+    entry = {
+        "fit_s": 12.4, "converged_fraction": 0.5, "lapse_fitted": True,
+        "motor_noise_hat": 0.1234, "lapse_hat": 0.0123, "parameters": {},
+        "beliefs": {"position_correlation": 0.9912, "belief_error_correlation": 0.4321},
+        "truth_check": {
+            "median_log_likelihood_ratio": 4.26, "expected_median": 4.67, "below_truth": 2,
+            "score_rms": 1.234, "score_beyond": 0.07,
+        },
+        "particle_check": {
+            "particles": 300, "median_gap_at_theta_hat": 7.34, "median_gap_at_theta_true": 9.87,
+            "more_likely_at_theta_true": 1,
+        },
+    }  # fmt: skip
+    text = format_recovery({"n_agents": 3, "n_trials": 30, "methods": {"marginal": entry}})
+    lines = text.splitlines()
+    assert lines[:5] == [
+        "marginal: 3 agents × 30 trials, fit 12 s, converged 50%, belief position r 0.991, "
+        "belief error r 0.432",
+        "  fitted medians: motor noise 0.123, lapse rate 0.0123",
+        "  log L(θ̂) − log L(θ*): median 4.3 nats (an exact likelihood's: 4.7); "
+        "2 fit(s) ended below θ*",
+        "  one scoring step from θ*: rms 1.23 sd, 7% beyond ±1.96 (an exact likelihood's: 1, 5%)",
+        "  particle check (300 particles): the approximation loses 7.3 nats at θ̂ and 9.9 at θ* "
+        "(medians); 1 agents' θ* more likely than θ̂",
+    ]
+
+
+def test_the_truth_check_counts_every_fit_below_the_truth(monkeypatch):
+    """Log-likelihoods −10, −12, −9 at θ̂ against −9, −11, −9.5 at θ*: ratios −1, −1, 0.5 into
+    each agent (median −1), two fits below θ*; scoring steps 0.5, −2.5, 1, 3 from θ*: rms
+    √(16.5 / 4) = 2.031, half beyond ±1.96; three fitted coordinates: half χ²₃'s median."""
+    class Loss:
+        parameter_names = ["a", "b", "c"]
+
+        def log_likelihood(self, theta, nuisance, held):
+            assert torch.equal(theta, torch.ones(3, 2, dtype=torch.float64))
+            return torch.tensor([-9.0, -11.0, -9.5], dtype=torch.float64)
+
+    steps = torch.tensor([0.5, -2.5, 1.0, 3.0], dtype=torch.float64)
+    monkeypatch.setattr(recover2d, "score_check", lambda *args: steps)
+    result = SimpleNamespace(
+        nuisance=torch.zeros(3, 1, dtype=torch.float64),
+        log_likelihood=torch.tensor([-10.0, -12.0, -9.0], dtype=torch.float64),
+    )
+    agents = [{}, {}, {}]
+    check = recover2d._truth_check(Loss(), None, result, torch.ones(3, 2), agents)
+    assert [agent["log_likelihood_ratio"] for agent in agents] == [-1.0, -1.0, 0.5]
+    assert check == pytest.approx(
+        {
+            "median_log_likelihood_ratio": -1.0,
+            "expected_median": chi2.median(3) / 2,
+            "below_truth": 2,
+            "score_rms": math.sqrt(16.5 / 4),
+            "score_beyond": 0.5,
+        }
+    )

@@ -458,7 +458,8 @@ def stop_sharpness(
     Algorithm 2 scores a stop by its forward control; a policy that switches from going to
     stopping within the spread of the agent's belief makes the likelihood a cusp there
     (docs/recovery2d.md). Returns the fraction of trials that stop and the mean ``a_v_before``,
-    ``a_v_stop`` and ``drop`` (their difference); the means are None where no trial stops.
+    ``a_v_stop`` and ``drop`` (their difference); the means are None where no trial stops
+    (``a_v_before`` and ``drop``: where no stop has a step before it, ``min_steps=0``).
     """
     rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
     return _sharpness(model, rollout, alive)
@@ -471,8 +472,10 @@ def _sharpness(
     rows = torch.arange(last.shape[0], device=last.device)
     action, step = rollout["action"][rows, last], rollout["step"][rows, last]
     stopped = model.stops(action, step).squeeze(-1)
-    before = rollout["action"][rows, last - 1][stopped, 0]
-    at = action[stopped, 0]
+    # a stop on a trial's first step (min_steps = 0) has no step before it: index -1 would
+    # read the rollout's last step, in a later trial
+    paired = stopped & (last > 0)
+    before = rollout["action"][rows, (last - 1).clamp_min(0)][paired, 0]
 
     def mean(x: torch.Tensor) -> float | None:
         return float(x.mean()) if x.numel() else None
@@ -480,8 +483,8 @@ def _sharpness(
     return {
         "stopped": float(stopped.float().mean()),
         "a_v_before": mean(before),
-        "a_v_stop": mean(at),
-        "drop": mean(before - at),
+        "a_v_stop": mean(action[stopped, 0]),
+        "drop": mean(before - action[paired, 0]),
     }
 
 
