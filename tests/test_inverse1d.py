@@ -345,20 +345,28 @@ def test_observed_covariance_inverts_the_curvature_and_leaves_only_flat_directio
     assert unbounded.tolist() == [[True, True, False]] * 4
 
 
+def _random_curvature(n: int, seed: int, scale: float, floor: float):
+    """``n`` agents' θ̂ drawn from the 2D task's prior and a full positive definite Hessian over
+    its free θ and two nuisances: ``(space, free, k, θ̂, u, H, generator)``."""
+    space = firefly2d_theta_space()
+    free = space.free_mask
+    k = int(free.sum())
+    gen = torch.Generator().manual_seed(seed)
+    theta_hat = space.sample((n,), generator=gen, dtype=torch.float64)
+    u = space.to_unconstrained(theta_hat)[:, free]
+    root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
+    hessian = scale * (root @ root.mT) + floor * torch.eye(k + 2, dtype=torch.float64)
+    return space, free, k, theta_hat, u, hessian, gen
+
+
 @pytest.mark.parametrize("sandwich", [False, True])
 def test_fisher_intervals_are_the_delta_method_of_the_inverse_curvature(sandwich):
     """On the 2D task's θ (ranges other than 1, a fixed parameter between free ones) with two
     nuisances and a full Hessian ``H`` (and meat ``M``): the covariance of the free θ is
     ``J C Jᵀ`` for ``C = H⁻¹`` (``H⁻¹ M H⁻¹``) and ``J = ∂θ/∂u`` of the bounded transform, the
     std its diagonal's root, and the interval ``θ(u ± Z95 √C)``."""
-    space = firefly2d_theta_space()
-    free = space.free_mask
-    k, n = int(free.sum()), 3
-    gen = torch.Generator().manual_seed(0)
-    theta_hat = space.sample((n,), generator=gen, dtype=torch.float64)
-    u = space.to_unconstrained(theta_hat)[:, free]
-    root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
-    hessian = 50 * (root @ root.mT) + 10 * torch.eye(k + 2, dtype=torch.float64)
+    space, free, k, theta_hat, u, hessian, gen = _random_curvature(3, seed=0, scale=50, floor=10)
+    n = len(theta_hat)
     root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
     meat = 30 * (root @ root.mT) + 10 * torch.eye(k + 2, dtype=torch.float64)
     iv = fisher_intervals(space, theta_hat, u, hessian, meat if sandwich else None)
@@ -386,14 +394,7 @@ def test_correlations_are_those_of_the_inverse_curvature_and_unknown_where_unbou
     method rescales each coordinate, which leaves correlations as they are), with a fixed
     parameter between the free ones; a parameter the data do not bound gets NaN in its row
     and column, and the others keep theirs."""
-    space = firefly2d_theta_space()
-    free = space.free_mask
-    k, n = int(free.sum()), 2
-    gen = torch.Generator().manual_seed(1)
-    theta_hat = space.sample((n,), generator=gen, dtype=torch.float64)
-    u = space.to_unconstrained(theta_hat)[:, free]
-    root = torch.randn(n, k + 2, k + 2, generator=gen, dtype=torch.float64)
-    hessian = 20 * (root @ root.mT) + torch.eye(k + 2, dtype=torch.float64)
+    space, free, k, theta_hat, u, hessian, _ = _random_curvature(2, seed=1, scale=20, floor=1)
     cov = torch.linalg.inv(hessian)[:, :k, :k]
     sd = cov.diagonal(dim1=-2, dim2=-1).sqrt()
     expected = cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2))

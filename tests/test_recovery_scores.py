@@ -10,6 +10,20 @@ from irc_torchrl.algorithms.recovery import coverage_interval, format_parameters
 from irc_torchrl.objectives.fisher import Intervals
 
 
+def _fit_of(hat: torch.Tensor, intervals: Intervals) -> FitResult:
+    """A converged fit of five agents over θ = (a, b) with the given θ̂ and intervals."""
+    return FitResult(
+        theta_hat=hat,
+        nuisance=torch.zeros(5, 1),
+        log_likelihood=torch.zeros(5),
+        intervals=intervals,
+        converged=torch.ones(5, dtype=torch.bool),
+        iterations=1,
+        names=["a", "b"],
+        information=torch.eye(2).expand(5, 2, 2),
+    )
+
+
 @pytest.mark.parametrize(
     ("covered", "n", "expected"),
     [(38, 40, (0.8308, 0.9939)), (0, 10, (0.0, 0.3085)), (10, 10, (0.6915, 1.0))],
@@ -40,16 +54,7 @@ def test_scores_report_coverage_interval_and_z_calibration():
         covariance=torch.zeros(5, 2, 2),
         profiled=torch.zeros(5, 2, dtype=torch.bool),
     )
-    result = FitResult(
-        theta_hat=hat,
-        nuisance=torch.zeros(5, 1),
-        log_likelihood=torch.zeros(5),
-        intervals=intervals,
-        converged=torch.ones(5, dtype=torch.bool),
-        iterations=1,
-        names=["a", "b"],
-        information=torch.eye(2).expand(5, 2, 2),
-    )
+    result = _fit_of(hat, intervals)
     scores = score_recovery(["a"], ["a", "b"], truth, result)["parameters"]
     assert list(scores) == ["a"]
     a = scores["a"]
@@ -83,16 +88,7 @@ def test_scores_read_each_free_parameters_own_column_and_take_medians_against_th
         profiled=torch.tensor([[False, False], [False, False], [False, True], [False, False],
                                [False, False]]),
     )  # fmt: skip
-    result = FitResult(
-        theta_hat=hat,
-        nuisance=torch.zeros(5, 1),
-        log_likelihood=torch.zeros(5),
-        intervals=intervals,
-        converged=torch.ones(5, dtype=torch.bool),
-        iterations=1,
-        names=["a", "b"],
-        information=torch.eye(2).expand(5, 2, 2),
-    )
+    result = _fit_of(hat, intervals)
     summary = score_recovery(["b"], ["a", "b"], truth, result)
     b = summary["parameters"]["b"]
     assert list(summary["parameters"]) == ["b"]
