@@ -100,11 +100,8 @@ def _fit(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.recordings import fit_recordings, format_fit
     from irc_torchrl.config import load_recording_fit_config
 
-    # argparse gives every positional to FILE; key=value items are the settings
-    items = [*args.files, *args.overrides]
-    setting = [bool(KEY_VALUE.match(i)) and not Path(i).exists() for i in items]
-    files = [i for i, s in zip(items, setting, strict=True) if not s]
-    config = load_recording_fit_config([i for i, s in zip(items, setting, strict=True) if s])
+    files, settings = _files_and_settings(args)
+    config = load_recording_fit_config(settings)
     # an empty --free names nothing to fit (refused), not every parameter
     free = None if args.free is None else [n.strip() for n in args.free.split(",") if n.strip()]
     summary = fit_recordings(
@@ -121,6 +118,17 @@ def _fit(args: argparse.Namespace) -> int:
     print(format_fit(summary))
     print(f"wrote {args.out}/: summary.json, beliefs.npz and figures (PNG)")
     return 0
+
+
+def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]:
+    """``irc fit``'s recordings and its ``key=value`` settings: argparse gives every
+    positional to FILE, and an item that names an existing file is a recording."""
+    items = [*args.files, *args.overrides]
+    setting = [bool(KEY_VALUE.match(i)) and not Path(i).exists() for i in items]
+    return (
+        [i for i, s in zip(items, setting, strict=True) if not s],
+        [i for i, s in zip(items, setting, strict=True) if s],
+    )
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -373,10 +381,13 @@ def _check_arguments(args: argparse.Namespace) -> None:
 def _check_settings_once(args: argparse.Namespace) -> None:
     """Refuse a ``key=value`` setting whose key the command line gives twice (``units.x=cm
     units.x=m``): which one was meant is the user's to say, not the order's."""
-    files = [i for i in getattr(args, "files", []) if KEY_VALUE.match(i)]  # irc fit's settings
+    if hasattr(args, "files"):
+        settings = _files_and_settings(args)[1]
+    else:
+        settings = getattr(args, "overrides", [])
     given: dict[str, str] = {}
-    for item in [*files, *getattr(args, "overrides", [])]:
-        if "=" not in item or Path(item).exists():  # a recording's path, for irc fit
+    for item in settings:
+        if "=" not in item:  # the config refuses it, saying what a setting looks like
             continue
         key = item.partition("=")[0].strip()
         if key in given:
