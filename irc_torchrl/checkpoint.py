@@ -73,8 +73,9 @@ def save_checkpoint(
     Raises:
         ValueError: before writing anything, where the arguments would make a file that
             :func:`load_checkpoint` refuses: a ``state`` entry named like a header entry
-            (:data:`RESERVED`), or anything but plain data (tensors, dicts, lists, tuples,
-            strings, numbers, bools, None) in ``config`` or ``state``.
+            (:data:`RESERVED`), anything but plain data (tensors, dicts, lists, tuples,
+            strings, numbers, bools, None) in ``config`` or ``state``, or a tensor holding NaN
+            or ±inf (diverged weights; the file at ``path`` is left as it was).
     """
     _check_save_arguments(task, theta_space, config, state)
     payload = {
@@ -119,6 +120,12 @@ def _check_save_arguments(
                 f"save_checkpoint: {found}; expected plain data (tensors, dicts, lists, "
                 "tuples, strings, numbers, bools, None), which a weights-only load reads back"
             )
+    entry = _non_finite(dict(state))
+    if entry is not None:
+        raise ValueError(
+            f"save_checkpoint: state entry {entry} holds NaN or infinite values; expected "
+            "finite weights (training diverged), which load_checkpoint accepts"
+        )
 
 
 def _not_plain(value: Any, name: str) -> str | None:

@@ -229,6 +229,7 @@ def test_a_malformed_theta_space_is_refused_naming_the_file(tmp_path, trained, e
         ({"x": object()}, "state/x is a builtins.object"),
         ({"rng": {"numpy": [np.float32(1.0)]}}, "state/rng/numpy/0 is a numpy.float32"),
         ({"x": {frozenset(): 1}}, "state/x has a key frozenset"),
+        ({"opt": [torch.ones(2), torch.tensor([0.0, torch.nan])]}, "state entry opt/1 holds NaN"),
     ],
 )
 def test_saving_refuses_what_loading_would_refuse(tmp_path, state, message):
@@ -318,11 +319,18 @@ def test_another_minor_version_of_the_same_major_loads(tmp_path):
 
 @pytest.mark.parametrize("value", [torch.inf, -torch.inf, torch.nan])
 def test_a_non_finite_tensor_inside_a_list_is_refused_naming_it(tmp_path, value):
-    """An optimiser's state holds lists of tensors; an infinite one is as damaged as a NaN."""
+    """An optimiser's state holds lists of tensors; an infinite one is as damaged as a NaN,
+    whether saving meets it (diverged training) or loading (a file edited or damaged since)."""
     state = {"opt": {"groups": [torch.ones(2), torch.tensor([1.0, value])]}}
+    with pytest.raises(ValueError, match="save_checkpoint: state entry opt/groups/1 holds NaN"):
+        save_checkpoint(
+            tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state=state
+        )
     path = save_checkpoint(
-        tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state=state
+        tmp_path / "c.pt", task="firefly2d", theta_space=_SPACE, config={}, state={}
     )
+    payload = torch.load(path, weights_only=True)
+    torch.save({**payload, **state}, path)
     with pytest.raises(ValueError, match="c.pt: entry opt/groups/1 holds NaN or infinite"):
         load_checkpoint(path)
 

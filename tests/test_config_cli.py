@@ -140,6 +140,22 @@ def test_a_malformed_yaml_file_names_file_and_line(tmp_path):
         load_config(tmp_path / "bad.yaml")
 
 
+def test_a_yaml_file_giving_a_key_twice_is_refused_naming_both_lines(tmp_path):
+    """Plain YAML keeps the last of two values; a config file is refused as the command line
+    is. A merge key's entries may still be overridden, as YAML means them to be."""
+    (tmp_path / "twice.yaml").write_text("seed: 1\nagents:\n  n_agents: 3\n  n_agents: 4\n")
+    with pytest.raises(
+        ValueError,
+        match=r"twice.yaml is not valid YAML: the key 'n_agents' is given twice "
+        r"\(also on line 3\) \(line 4, column 3\)$",
+    ):
+        load_config(tmp_path / "twice.yaml")
+    merged = "agents: {<<: {n_agents: 3, n_trials: 7}, n_agents: 5}\n"
+    (tmp_path / "merged.yaml").write_text(merged)
+    agents = load_config(tmp_path / "merged.yaml").agents
+    assert (agents.n_agents, agents.n_trials) == (5, 7)
+
+
 def test_missing_config_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="no file at"):
         load_config(tmp_path / "absent.yaml")
