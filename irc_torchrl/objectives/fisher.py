@@ -93,8 +93,9 @@ class Intervals:
 def observed_covariance(hessian: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The inverse of a Hessian ``[n, p, p]`` over its positive curvature, and which
     coordinates it leaves unbounded ``[n, p]``: a direction of zero or negative curvature
-    leaves the coordinates that load on it without an interval (infinite), and only those."""
-    eigval, eigvec = torch.linalg.eigh(hessian)
+    leaves the coordinates that load on it without an interval (infinite), and only those.
+    The Hessian's symmetric part is used (``eigh`` alone would read one triangle)."""
+    eigval, eigvec = torch.linalg.eigh(0.5 * (hessian + hessian.mT))
     positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
     loading = eigvec**2  # [n, p coordinates, p directions]
     unbounded = ((loading > 1e-8) & ~positive.unsqueeze(1)).any(-1)
