@@ -153,7 +153,7 @@ def resolve_device(name: str) -> torch.device:
         raise ValueError("device: 'meta' tensors hold no values; expected 'cpu' or 'cuda'")
     try:
         torch.zeros(1, device=device)
-    except (RuntimeError, AssertionError):  # a backend this torch build or machine lacks
+    except (RuntimeError, AssertionError, ImportError):  # a backend this build or machine lacks
         raise ValueError(
             f"device: {name!r} is not usable here (no working {device.type!r} backend in this "
             "torch); expected 'cpu' or an available accelerator"

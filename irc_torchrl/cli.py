@@ -378,18 +378,25 @@ def _check_arguments(args: argparse.Namespace) -> None:
         )
 
 
+#: the options that set a key of their command's config (``--seed 3`` sets ``seed=3``)
+OPTION_SETTINGS = {"demo": ("seed",), "recover": ("seed", "device"), "train": ("seed", "device")}
+
+
 def _check_settings_once(args: argparse.Namespace) -> None:
     """Refuse a ``key=value`` setting whose key the command line gives twice (``units.x=cm
-    units.x=m``): which one was meant is the user's to say, not the order's."""
+    units.x=m``, or ``seed=5`` with ``--seed 3``): which one was meant is the user's to say,
+    not the order's."""
     if hasattr(args, "files"):
         settings = _files_and_settings(args)[1]
     else:
         settings = getattr(args, "overrides", [])
+    # a setting without "=" is the config's to refuse, saying what a setting looks like
+    items = [(item.partition("=")[0].strip(), item) for item in settings if "=" in item]
+    for key in OPTION_SETTINGS.get(args.command, ()):
+        if getattr(args, key, None) is not None:
+            items.append((key, f"--{key} {getattr(args, key)}"))
     given: dict[str, str] = {}
-    for item in settings:
-        if "=" not in item:  # the config refuses it, saying what a setting looks like
-            continue
-        key = item.partition("=")[0].strip()
+    for key, item in items:
         if key in given:
             raise ValueError(f"{key}: given twice ({given[key]!r} and {item!r}); give it once")
         given[key] = item

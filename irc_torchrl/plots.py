@@ -378,13 +378,16 @@ def _task_units(task: str | None) -> dict[str, str]:
     return {p.name: p.unit for p in spaces[task]().parameters}
 
 
-def _agent_figures(part: Mapping, path: Path, units: Mapping[str, str]) -> Path:
+def _agent_figures(
+    part: Mapping, path: Path, units: Mapping[str, str], title: str | None = None
+) -> Path:
     """θ̂ against the truth for the agents that have one (where coverage was scored), else θ̂
     alone."""
     known = [a for a in part["agents"] if "theta_true" in a]
     if "parameters" in part and known:
         scored = {**part, "agents": known}
-        return plot_recovery(scored, path.with_name(f"recovery{path.name}"), units=units)
+        path = path.with_name(f"recovery{path.name}")
+        return plot_recovery(scored, path, title=title, units=units)
     return plot_estimates(dict(part), path.with_name(f"estimates{path.name}"), units)
 
 
@@ -489,7 +492,7 @@ def _report(
     for method, part in summary.get("methods", {}).items():
         if part.get("agents"):
             part = {"free": summary.get("free"), **part}
-            written.append(_agent_figures(part, out / f"_{method}.png", units))
+            written.append(_agent_figures(part, out / f"_{method}.png", units, title=method))
     if beliefs is not None and "state_names" in summary:
         written += _belief_figures(summary, beliefs, out)
     if figures is not None and summary.get("task") == "firefly1d":

@@ -145,11 +145,12 @@ def test_summary_scores_both_groups_of_agents(recovery, shipped):
 
 def test_report_redraws_a_recovery_folders_belief_figures(recovery, tmp_path, capsys):
     # irc recover keeps the trials with the agents' own and the recovered beliefs (trials/);
-    # irc report draws Fig. 1E/1F from them pixel for pixel as the run did, and refuses a
-    # truncated trials/ before drawing anything
+    # irc report draws Fig. 1E/1F from them (and θ̂ against θ* per method) pixel for pixel as
+    # the run did, and refuses a truncated trials/ before drawing anything
     trials, summary, _ = recovery
     write_recovery(trials, summary, tmp_path)
-    names = [f"beliefs_{kind}_{m}.png" for kind in ("overhead", "time") for m in summary["methods"]]
+    kinds = ("beliefs_overhead_", "beliefs_time_", "recovery_")
+    names = [f"{kind}{m}.png" for kind in kinds for m in summary["methods"]]
     drawn = {name: imread(tmp_path / name) for name in names}
     for name in names:
         (tmp_path / name).unlink()

@@ -90,7 +90,8 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     write_json(out / "summary.json", summary)
     arrays = _figure_arrays(model, q, theta_grid, optimal, learned)
     write_npz(out / "figures.npz", arrays)
-    plot_recovery(summary, out / "recovery.png")
+    units = {p.name: p.unit for p in model.theta_space.parameters}  # as irc report labels them
+    plot_recovery(summary, out / "recovery.png", units=units)
     demo_figures(arrays, out)
     return summary
 
