@@ -11,6 +11,7 @@ import torch
 
 import irc_torchrl
 from irc_torchrl.algorithms.ensemble import (
+    RESUME_ENTRIES,
     Firefly2DConfig,
     load_ensemble_critic,
     load_ensemble_policy,
@@ -56,7 +57,11 @@ def test_round_trip_restores_weights_and_counters(trained):
     ckpt = load_checkpoint(
         out / "checkpoint.pt", task="firefly2d", theta_space=result.model.theta_space
     )
-    assert ckpt["counters"] == {"frames": result.frames, "updates": result.updates}
+    assert ckpt["counters"] == {
+        "frames": result.frames,
+        "updates": result.updates,
+        "warmup_frames": 256,  # the pursuit warm-up's, on top of total_frames
+    }
     assert ckpt["version"] == irc_torchrl.__version__
     assert ckpt["config"]["ddpg"]["hidden"] == [16, 16]
     for name, value in result.actor.state_dict().items():
@@ -377,6 +382,17 @@ def test_resume_restores_state_and_is_deterministic(tmp_path, trained):
     assert runs[0].history[: len(first.history)] == first.history
 
 
+def test_a_resumed_run_ends_at_the_frames_of_an_uninterrupted_one(tmp_path, trained):
+    """``total_frames`` counts the exploring policy's frames, the pursuit warm-up's come on
+    top: a resumed run counted the warm-up's against its budget too, and stopped short of the
+    uninterrupted run (here without a single update after the resume)."""
+    result, _ = trained
+    first = train_ensemble(tiny("ddpg.total_frames=640"), out=tmp_path, progress=False)
+    resumed = train_ensemble(tiny(), resume=tmp_path / "checkpoint.pt", progress=False)
+    assert resumed.frames == result.frames == 1280 + 256
+    assert resumed.updates > first.updates
+
+
 class _Exploit:
     ran = False
 
@@ -387,3 +403,32 @@ class _Exploit:
     def _run():
         _Exploit.ran = True
         return "pwned"
+
+
+def _same(a, b) -> bool:
+    """Equal nested state: dicts, lists and tuples of tensors (bit for bit) and plain values."""
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and torch.equal(a, b)
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return type(a) is type(b) and len(a) == len(b) and all(map(_same, a, b))
+    return a == b
+
+
+def test_resuming_a_finished_run_restores_every_entry_it_reads(tmp_path, trained):
+    """With nothing left to train, a resumed run checkpoints what it restored: networks and
+    their targets, optimisers, the annealed noise, the kept policy, counters and history; its
+    random stream goes on from the saved one (setting the run up draws from it)."""
+    _, out = trained
+    before = torch.load(out / "checkpoint.pt", weights_only=True)
+    seed99 = torch.Generator().manual_seed(99).get_state()
+    other = _edited(trained, tmp_path, lambda p: p["rng"].update(torch=seed99))
+    after = {}
+    for name, path in (("same", out / "checkpoint.pt"), ("other", other)):
+        train_ensemble(tiny(), out=tmp_path / name, resume=path, progress=False)
+        after[name] = torch.load(tmp_path / name / "checkpoint.pt", weights_only=True)
+    for entry in (*RESUME_ENTRIES, "actor"):
+        if entry != "rng":
+            assert _same(before[entry], after["same"][entry]), entry
+    assert not torch.equal(after["same"]["rng"]["torch"], after["other"]["rng"]["torch"])

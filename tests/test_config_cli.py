@@ -227,6 +227,27 @@ def test_worker_processes_are_refused_off_the_cpu():
         check_workers(2, "cuda:0")
 
 
+@pytest.mark.parametrize("before", [False, True])
+def test_a_runs_torch_settings_give_the_callers_back_afterwards(before):
+    """Threads and denormal flushing return to what the caller had, either way: flushing
+    was switched off afterwards even where the caller had it on."""
+    import torch
+
+    from irc_torchrl.algorithms.runtime import flushing_denormals, torch_settings
+
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU cannot flush denormals")
+    threads = torch.get_num_threads()
+    try:
+        torch.set_flush_denormal(before)
+        with torch_settings(threads + 1, not before):
+            assert (torch.get_num_threads(), flushing_denormals()) == (threads + 1, not before)
+        assert (torch.get_num_threads(), flushing_denormals()) == (threads, before)
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_flush_denormal(False)
+
+
 @pytest.mark.parametrize(
     "override, message",
     [

@@ -69,11 +69,20 @@ def test_shipped_checkpoint_was_trained_by_the_default_config():
         ("ddpg.noise_clip=-0.1", "ddpg.noise_clip must be ≥ 0"),
         ("ddpg.lr_actor=.inf", "ddpg.lr_actor must be finite"),
         ("ddpg.bc_weight=.inf", "ddpg.bc_weight must be finite"),
+        ("ddpg.sigma_end=0.2", "ddpg.sigma_end=0.2 must not exceed ddpg.sigma_init=0.15"),
+        ("ddpg.tau=0", r"ddpg.tau must lie in \(0, 1\], got 0"),  # the targets would never move
+        ("ddpg.buffer_size=511", "ddpg.buffer_size=511 must hold a batch, ddpg.batch_size=512"),
+        ("ddpg.collector_workers=3", "ddpg.n_envs=64 must be a multiple of"),
+        (
+            ("ddpg.warmup_policy=random", "ddpg.bc_weight=2"),  # the term would be dropped
+            "ddpg.bc_weight clones the pursuit controller, which ddpg.warmup_policy='random'",
+        ),
     ],
 )
 def test_bad_config_is_a_clear_error(override, message):
+    overrides = [override] if isinstance(override, str) else list(override)
     with pytest.raises((KeyError, ValueError), match=message):
-        load_firefly2d_config(overrides=[override])
+        load_firefly2d_config(overrides=overrides)
 
 
 def test_actor_respects_action_bounds_and_reads_theta():
@@ -569,3 +578,182 @@ def test_stop_sharpness_has_no_control_before_a_stop_on_a_trials_first_step():
 
     sharp = stop_sharpness(model, at_once, theta, trials_per_theta=2, seed=0)
     assert sharp == {"stopped": 1.0, "a_v_before": None, "a_v_stop": 0.0, "drop": None}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A tiny run with no cloning in which only DDPG and the TD3+BC term move the networks,
+    and what it did recorded: each evaluation (scored by a script: the highest return at the
+    second one, the highest success at the first) with the actor it scored, the weight of the
+    TD3+BC term at each update (the gradient of a unit loss), the counters of each checkpoint,
+    the discount of each n-step transform and the loss module itself."""
+    from irc_torchrl.algorithms import ensemble
+
+    log = {"evaluations": [], "bc_weights": [], "saved": [], "n_step_gamma": [], "loss": []}
+    save_checkpoint, n_step_transform, soft_update = (
+        ensemble.save_checkpoint,
+        ensemble.MultiStepTransform,
+        ensemble.SoftUpdate,
+    )
+    scores = [(0.9, 1.0), (0.1, 3.0), (0.5, 2.0), (0.0, 0.0), (0.0, -1.0)]
+
+    def evaluate(model, policy, thetas, trials_per_theta, seed):
+        log["evaluations"].append(
+            ({k: v.clone() for k, v in policy.state_dict().items()}, thetas.clone(), seed)
+        )
+        success, mean_return = scores[len(log["evaluations"]) - 1]
+        n = thetas.shape[0]
+        return {
+            "success_rate": success,
+            "mean_return": mean_return,
+            "mean_length": 1.0,
+            "per_theta_success": [success] * n,
+            "per_theta_return": [mean_return] * n,
+        }
+
+    def clone_loss(actor, teacher, batch):
+        unit = torch.ones((), requires_grad=True)
+        unit.register_hook(lambda grad: log["bc_weights"].append(grad.item()))
+        return unit
+
+    def save(path, **kwargs):
+        log["saved"].append(dict(kwargs["state"]["counters"]))
+        return save_checkpoint(path, **kwargs)
+
+    def n_step(n, gamma):
+        log["n_step_gamma"].append(gamma)
+        return n_step_transform(n, gamma)
+
+    def targets(loss, **kwargs):
+        log["loss"].append(loss)
+        return soft_update(loss, **kwargs)
+
+    config = tiny(
+        *("ddpg.clone_updates=0", "ddpg.critic_updates=0", "ddpg.pre_activation_weight=0"),
+        *("ddpg.bc_weight=8", "ddpg.bc_updates=4", "ddpg.anneal_frames=2560", "ddpg.gamma=0.9"),
+        "ddpg.total_frames=1250",  # 20 batches of 64 frames, the last one only in part
+    )
+    with pytest.MonkeyPatch.context() as patch:
+        for name, spy in [
+            ("evaluate_policy", evaluate),
+            ("_clone_loss", clone_loss),
+            ("save_checkpoint", save),
+            ("MultiStepTransform", n_step),
+            ("SoftUpdate", targets),
+        ]:
+            patch.setattr(ensemble, name, spy)
+        out = tmp_path_factory.mktemp("recorded")
+        result = train_ensemble(config, out=out, progress=False)
+    return result, log
+
+
+def test_the_kept_policy_is_the_one_with_the_best_return_on_the_fixed_grid(recorded):
+    """Evaluated after the warm-up, every ``evaluation.every`` updates and at the end, on the
+    grid of ``evaluation.seed``; the kept policy and its scores are those of the evaluation with
+    the highest mean return (the second here, not the last or the most successful)."""
+    result, log = recorded
+    e = result.config.evaluation
+    assert [row["updates"] for row in result.history] == [0, 10, 20, 30, 32]
+    grid = theta_grid(result.model.theta_space, e.n_theta, e.seed)
+    for _, thetas, seed in log["evaluations"]:
+        assert torch.equal(thetas, grid) and seed == e.seed
+    assert (result.best["updates"], result.best["mean_return"]) == (10, 3.0)
+    kept = log["evaluations"][1][0]
+    assert not all(torch.equal(v, log["evaluations"][-1][0][k]) for k, v in kept.items())
+    for name, value in result.actor.state_dict().items():
+        assert torch.equal(value, kept[name]), name
+
+
+def test_checkpoints_are_written_every_checkpoint_every_updates_and_at_the_end(recorded):
+    """A run stopped mid-way keeps its last checkpoint; the frames asked for are all collected
+    (the last batch whole), on top of the pursuit warm-up's."""
+    result, log = recorded
+    assert [saved["updates"] for saved in log["saved"]] == [10, 20, 30, 32]
+    assert log["saved"][-1] == {"frames": 256 + 1280, "updates": 32, "warmup_frames": 256}
+    assert result.frames == 256 + 1280
+
+
+def test_exploration_noise_anneals_linearly_over_the_frames_of_the_exploring_policy(recorded):
+    """σ falls from sigma_init towards sigma_end over anneal_frames frames: 1280 of 2560 collected
+    by the exploring policy (the pursuit warm-up explores by its own noise) leave it halfway."""
+    result, _ = recorded
+    sigma = torch.load(result.checkpoint, weights_only=True)["exploration"]["sigma"]
+    assert sigma.item() == pytest.approx(0.15 - 0.5 * (0.15 - 0.05), abs=1e-4)
+
+
+def test_the_behaviour_cloning_weight_anneals_linearly_to_zero_over_bc_updates(recorded):
+    _, log = recorded
+    assert log["bc_weights"] == pytest.approx([8.0, 6.0, 4.0, 2.0])
+
+
+def test_the_configs_discount_reaches_the_n_step_returns_and_the_td_targets(recorded):
+    _, log = recorded
+    assert log["n_step_gamma"] == [0.9, 0.9]  # the warm-up's transitions and DDPG's
+    assert log["loss"][0].value_estimator.gamma.item() == pytest.approx(0.9)
+
+
+def _initial_networks(result):
+    """The actor and critic state dicts a tiny run started from (made after seeding as it does)."""
+    torch.manual_seed(result.config.seed)
+    actor = make_actor(result.model, [16, 16])
+    return actor.state_dict(), make_critic(result.model, [16, 16]).state_dict()
+
+
+def _distance(loss, prefix, initial):
+    """How far the weight matrices under ``prefix`` in a checkpoint's loss are from ``initial``."""
+    weights = [k for k in initial if k.endswith("weight")]
+    return sum((loss[f"{prefix}.{k}"] - initial[k]).norm() for k in weights)
+
+
+def test_ddpg_moves_actor_and_critic_and_their_targets_follow_slowly(recorded):
+    """With no cloning and no pre-activation penalty, only DDPG's losses move the networks from
+    their initialisation; each target network moves too, by less than half as far (τ=0.005)."""
+    result, _ = recorded
+    loss = torch.load(result.checkpoint, weights_only=True)["loss"]  # at the last update
+    for network, start in zip(("actor", "value"), _initial_networks(result), strict=True):
+        target = _distance(loss, f"target_{network}_network_params", start)
+        assert 0 < target < 0.5 * _distance(loss, f"{network}_network_params", start), network
+
+
+def test_td3_smooths_its_target_action_by_the_configs_noise_and_clip():
+    from irc_torchrl.algorithms.ensemble import DDPGConfig, _make_loss
+
+    model = Firefly2DModel()
+    actor, critic = make_actor(model, [8]), make_critic(model, [8])
+    config = DDPGConfig(loss="td3", policy_noise=0.3, noise_clip=0.4)
+    loss = _make_loss(model, actor, critic, config)[0]
+    assert (float(loss.policy_noise), float(loss.noise_clip)) == pytest.approx((0.3, 0.4))
+
+
+def test_after_the_warm_up_the_target_actor_starts_from_the_clone(tmp_path):
+    """The targets are re-initialised after cloning (the target actor is the clone, not the
+    initialisation); the critic's warm-up then moves the target critic after the critic."""
+    config = tiny("ddpg.total_frames=64", "ddpg.critic_updates=10")  # no DDPG update after it
+    result = train_ensemble(config, out=tmp_path, progress=False)
+    assert result.updates == 0
+    loss = torch.load(result.checkpoint, weights_only=True)["loss"]
+    for name, value in loss.items():
+        if name.startswith("actor_network_params."):
+            torch.testing.assert_close(loss[f"target_{name}"], value)
+    _, critic = _initial_networks(result)
+    moved = _distance(loss, "target_value_network_params", critic)
+    assert 0 < moved < _distance(loss, "value_network_params", critic)
+
+
+@pytest.mark.filterwarnings("ignore:A policy device was provided")  # a policy with no weights
+def test_the_random_warm_up_takes_uniform_actions_before_the_policy_acts():
+    """``warmup_policy=random``: the first ``warmup_frames`` are uniform over the action box,
+    then the policy acts."""
+    from tensordict.nn import TensorDictModule
+
+    from irc_torchrl.algorithms.ensemble import _make_collector
+
+    config = tiny("ddpg.warmup_policy=random")  # 256 warm-up frames, batches of 64
+    model = make_model(config)
+    still = TensorDictModule(lambda step: torch.zeros(*step.shape[:-1], 2), ["step"], ["action"])
+    collector = _make_collector(config, model, still, 0, 512, random_start=True)
+    actions = torch.stack([batch["action"].reshape(-1, 2) for batch in collector])
+    collector.shutdown()
+    assert actions.shape[0] == 8 and actions[4:].abs().max() == 0
+    warm = actions[:4].reshape(-1, 2)
+    assert warm.abs().max() <= 1 and warm.abs().mean() == pytest.approx(0.5, abs=0.05)

@@ -91,8 +91,9 @@ class DDPGConfig:
     steps_per_batch: int = 4
     #: gradient updates per collector batch (one per batched step by default)
     updates_per_batch: int = 4
-    #: training length, in env frames (one frame = one step of one environment); with the
-    #: pre-activation penalty seeds 0 and 1 declined after about 450k of 768k frames
+    #: training length, in env frames (one frame = one step of one environment) of the
+    #: exploring policy (the pursuit warm-up's come on top); with the pre-activation penalty
+    #: seeds 0 and 1 declined after about 450k of 768k frames
     total_frames: int = 384_000
     #: frames collected before the first update: by ``warmup_policy`` at the start of a run,
     #: by the current policy after a resume (the replay buffer is not checkpointed)
@@ -257,6 +258,11 @@ class Firefly2DConfig:
                 raise ValueError(f"config: {name} must be ≥ 0, got {value}")
             if not math.isfinite(value):
                 raise ValueError(f"config: {name} must be finite, got {value}")
+        if d.sigma_end > d.sigma_init:
+            raise ValueError(
+                f"config: ddpg.sigma_end={d.sigma_end} must not exceed "
+                f"ddpg.sigma_init={d.sigma_init} (the exploration noise anneals down)"
+            )
         for name, value in {"ddpg.gamma": d.gamma, "ddpg.tau": d.tau}.items():
             if not 0 < value <= 1:
                 raise ValueError(f"config: {name} must lie in (0, 1], got {value}")
@@ -304,6 +310,12 @@ class Firefly2DConfig:
         if d.warmup_policy not in ("pursuit", "random"):
             raise ValueError(
                 f"config: ddpg.warmup_policy must be 'pursuit' or 'random', got {d.warmup_policy!r}"
+            )
+        if d.bc_weight > 0 and d.warmup_policy != "pursuit":
+            raise ValueError(
+                f"config: ddpg.bc_weight clones the pursuit controller, which "
+                f"ddpg.warmup_policy={d.warmup_policy!r} does not run; expected 0, "
+                f"got {d.bc_weight}"
             )
         if self.logger not in ("csv", "tensorboard", "none"):
             raise ValueError(
@@ -644,6 +656,9 @@ def _train(
     thetas = theta_grid(model.theta_space, e.n_theta, e.seed).to(device)
 
     frames, updates, history, best = 0, 0, [], None
+    # frames the pursuit warm-up collected: beyond total_frames, which counts the frames of the
+    # exploring policy (a resumed run's budget must not spend them a second time)
+    seeded = 0
     best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
     env_seed = config.seed
     if resume is not None:
@@ -657,7 +672,9 @@ def _train(
         _restore(noise, ckpt, "exploration")
         _check_fit(actor, ckpt, "best_actor", ckpt["best_actor"])
         best_actor = ckpt["best_actor"]
-        frames, updates = int(ckpt["counters"]["frames"]), int(ckpt["counters"]["updates"])
+        counters = ckpt["counters"]
+        frames, updates = int(counters["frames"]), int(counters["updates"])
+        seeded = int(counters.get("warmup_frames", 0))  # absent from older checkpoints
         history, best = list(ckpt["history"]), ckpt["best"]
         # a fresh world stream for the trials after the resume, derived from the counters
         env_seed = config.seed + 7919 * (updates + 1)
@@ -676,13 +693,13 @@ def _train(
             )
 
     frames_per_batch = d.n_envs * d.steps_per_batch
-    remaining = max(d.total_frames - frames, 0)
+    remaining = max(d.total_frames + seeded - frames, 0)
     remaining = math.ceil(remaining / frames_per_batch) * frames_per_batch
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(d.buffer_size, device=device), batch_size=d.batch_size
     )
     logger = _Logger(config.logger, out)
-    bar = _progress_bar(progress, d.total_frames, frames)
+    bar = _progress_bar(progress, d.total_frames, frames - seeded)
     cpu0 = time.process_time() - (history[-1]["cpu_s"] if history else 0.0)
     eval_cpu = history[-1]["cpu_s"] - history[-1]["train_cpu_s"] if history else 0.0
     checkpoint_path = out / "checkpoint.pt" if out is not None else None
@@ -697,7 +714,7 @@ def _train(
             "optimiser_actor": opt_actor.state_dict(),
             "optimiser_critic": opt_critic.state_dict(),
             "exploration": noise.state_dict(),
-            "counters": {"frames": frames, "updates": updates},
+            "counters": {"frames": frames, "updates": updates, "warmup_frames": seeded},
             "rng": {"torch": torch.get_rng_state(), **_device_rng_state(device)},
             "history": history,
             "best": best,
@@ -743,6 +760,7 @@ def _train(
         warmup_steps = MultiStepTransform(d.n_steps, d.gamma)
         for batch in warmup_collector:
             frames += batch.numel()
+            seeded += batch.numel()
             _extend(buffer, warmup_steps, batch)
         warmup_collector.shutdown()
         _pretrain(loss, value_loss, teacher, buffer, opt_actor, opt_critic, target_update, d)

@@ -20,14 +20,14 @@ def torch_settings(threads: int, flush_denormal: bool) -> Iterator[None]:
     several-fold; both are settings of the run, not hidden defaults, and must not leak into the
     caller (a notebook, a test session) afterwards.
     """
-    previous = torch.get_num_threads()
+    previous, flushing = torch.get_num_threads(), flushing_denormals()
     torch.set_num_threads(threads)
     torch.set_flush_denormal(flush_denormal)
     try:
         yield
     finally:
         torch.set_num_threads(previous)
-        torch.set_flush_denormal(False)  # torch's default; it has no getter to restore from
+        torch.set_flush_denormal(flushing)
 
 
 def flushing_denormals() -> bool:
