@@ -432,3 +432,24 @@ def test_resuming_a_finished_run_restores_every_entry_it_reads(tmp_path, trained
         if entry != "rng":
             assert _same(before[entry], after["same"][entry]), entry
     assert not torch.equal(after["same"]["rng"]["torch"], after["other"]["rng"]["torch"])
+
+
+def test_a_resumed_run_runs_its_own_configs_rates_and_noise_saying_what_changed(
+    tmp_path, trained
+):
+    """The restored optimisers and noise carried the checkpoint's rates and noise bounds: a
+    config resumed with other ones wrote them to config.yaml but trained with the old."""
+    _, out = trained
+    changed = ["ddpg.lr_actor=3e-4", "ddpg.lr_critic=2e-3", "ddpg.sigma_end=0.01"]
+    with pytest.warns(UserWarning, match=r"ddpg.lr_actor: 0.0001 → 0.0003; ddpg.lr_critic"):
+        train_ensemble(
+            tiny("ddpg.total_frames=1536", *changed),
+            out=tmp_path,
+            resume=out / "checkpoint.pt",
+            progress=False,
+        )
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    rates = [ckpt[f"optimiser_{n}"]["param_groups"][0]["lr"] for n in ("actor", "critic")]
+    assert rates == [3e-4, 2e-3]
+    assert ckpt["exploration"]["sigma_end"].item() == pytest.approx(0.01)
+    assert ckpt["exploration"]["sigma_init"].item() == pytest.approx(0.15)

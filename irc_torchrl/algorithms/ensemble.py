@@ -613,6 +613,8 @@ def train_ensemble(
         resume: a checkpoint to continue from. Networks, optimisers, exploration noise,
             counters and RNG states are restored; the replay buffer and the trials in flight
             are not (the buffer is refilled with ``warmup_frames`` from the current policy).
+            The config's learning rates and noise bounds replace the checkpoint's (a warning
+            names those that differ); other networks than the checkpoint's are refused.
         progress: show a progress bar with the current success rate.
         seed: overrides ``config.seed``.
 
@@ -670,6 +672,7 @@ def _train(
         _restore(opt_actor, ckpt, "optimiser_actor")
         _restore(opt_critic, ckpt, "optimiser_critic")
         _restore(noise, ckpt, "exploration")
+        _apply_schedule(ckpt, d, opt_actor, opt_critic, noise)
         _check_fit(actor, ckpt, "best_actor", ckpt["best_actor"])
         best_actor = ckpt["best_actor"]
         counters = ckpt["counters"]
@@ -978,6 +981,38 @@ def _check_networks(ckpt: Mapping[str, Any], d: DDPGConfig) -> None:
                 f"resume: checkpoint {ckpt['path']} has ddpg.{name}={saved[name]!r}, the config "
                 f"{getattr(d, name)!r}; resume with the checkpoint's settings"
             )
+
+
+#: the settings a checkpoint's optimisers and noise carry, which a resumed run takes from its
+#: config instead
+SCHEDULE = ("lr_actor", "lr_critic", "sigma_init", "sigma_end")
+
+
+def _apply_schedule(
+    ckpt: Mapping[str, Any],
+    d: DDPGConfig,
+    opt_actor: torch.optim.Optimizer,
+    opt_critic: torch.optim.Optimizer,
+    noise: AdditiveGaussianModule,
+) -> None:
+    """Give the restored optimisers and noise the config's rates and noise bounds (the config
+    a resumed run writes is the one it runs), warning where they differ from the checkpoint's."""
+    saved = ckpt["config"].get("ddpg", {})
+    changed = [
+        f"ddpg.{n}: {saved[n]} → {getattr(d, n)}"
+        for n in SCHEDULE
+        if n in saved and saved[n] != getattr(d, n)
+    ]
+    if changed:
+        warnings.warn(
+            f"resume: continuing {ckpt['path']} with the config's {'; '.join(changed)}",
+            stacklevel=4,
+        )
+    _set_lr(opt_actor, d.lr_actor)
+    _set_lr(opt_critic, d.lr_critic)
+    noise.sigma_init.fill_(d.sigma_init)
+    noise.sigma_end.fill_(d.sigma_end)
+    noise.sigma.clamp_(d.sigma_end, d.sigma_init)
 
 
 def _restore(target: Any, ckpt: Mapping[str, Any], entry: str, weights: Any = None) -> None:
