@@ -39,7 +39,7 @@ from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueE
 import irc_torchrl
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
-from irc_torchrl.checks import check_fields, count
+from irc_torchrl.checks import check_fields, count, real
 from irc_torchrl.checks import positive as check_positive
 from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.files import write_json, write_text
@@ -338,7 +338,8 @@ def config_from_dict(data: Mapping[str, Any]) -> Firefly2DConfig:
 def make_model(config: Firefly2DConfig) -> Firefly2DModel:
     """The task of ``config``: the 2D firefly over its θ space with ``theta_fixed`` held."""
     try:
-        space = firefly2d_theta_space().fix(**{k: float(v) for k, v in config.theta_fixed.items()})
+        fixed = {k: real(k, v) for k, v in config.theta_fixed.items()}
+        space = firefly2d_theta_space().fix(**fixed)
     except KeyError as error:
         raise ValueError(f"config: theta_fixed: {error.args[0]}") from None
     except ValueError as error:
