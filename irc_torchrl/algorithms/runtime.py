@@ -32,8 +32,9 @@ def torch_settings(threads: int, flush_denormal: bool) -> Iterator[None]:
 
 def flushing_denormals() -> bool:
     """Whether this process flushes denormal floats to zero (torch has no getter: a denormal
-    doubled reads zero only then), so worker processes can run as their parent does."""
-    return bool(torch.tensor(1e-310, dtype=torch.float64) * 2 == 0)
+    doubled reads zero only then), so worker processes can run as their parent does. The
+    setting is the CPU's: read on it whatever the default device."""
+    return bool(torch.tensor(1e-310, dtype=torch.float64, device="cpu") * 2 == 0)
 
 
 def check_workers(workers: int, device: torch.device | str) -> None:
