@@ -9,9 +9,11 @@ import math
 import pytest
 import torch
 
+from irc_torchrl.algorithms import recover2d
 from irc_torchrl.algorithms.calibration import (
     MIN_REFITS,
     Calibration,
+    agent_intervals,
     calibrate_intervals,
     format_factors,
     interval_pivots,
@@ -20,6 +22,7 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
+from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 from irc_torchrl.config import FitConfig
 from irc_torchrl.envs.firefly2d import Firefly2DModel
@@ -449,3 +452,71 @@ def test_recovery_reports_intervals_calibrated_on_simulated_refits():
             assert space[name].low <= low <= hat.item() <= high <= space[name].high
             assert high - low == pytest.approx(space[name].high - space[name].low)
     assert summary["timings"]["calibrate_s"] > 0
+
+
+def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_methods_fits(
+    monkeypatch,
+):
+    """Map then marginal, calibrate=2, every fit replaced by θ̂ drawn from the prior (a draw of
+    its own per fit, Wald sd 0.5 in the fit's coordinates): the datasets are simulated at the
+    marginal's θ̂, each agent in its recorded world, each dataset by a seed of its own; each
+    marginal fit starts from map's θ̂ of the same data; each method's recovered beliefs are
+    those under its own θ̂, and its calibrated intervals and coverage its own fit's widened
+    by the factors of its own refits."""
+    space = Firefly2DModel().theta_space
+    k = len(space.free_names)
+    fits, simulated = [], []
+
+    def fit(loss, held, **kwargs):
+        n = held.shape[0]
+        g = torch.Generator().manual_seed(len(fits))
+        theta = space.sample((n,), generator=g, dtype=torch.float64)
+        result = dataclasses.replace(
+            _result(space, theta, 4 * torch.eye(k, dtype=torch.float64).expand(n, k, k)),
+            nuisance=torch.full((n, 2), math.log(0.1), dtype=torch.float64),
+            information=torch.eye(k + 2, dtype=torch.float64).expand(n, k + 2, k + 2),
+        )
+        fits.append((loss.method, kwargs["starts"], result))
+        return result
+
+    def simulate(model, actor, action_model, result, world, n_trials, seed):
+        simulated.append((result.theta_hat, world, n_trials, seed))
+        return simulate_at_fits(model, actor, action_model, result, world, n_trials, seed)
+
+    monkeypatch.setattr(recover2d, "fit_theta", fit)
+    monkeypatch.setattr(recover2d, "simulate_at_fits", simulate)
+    monkeypatch.setattr(recover2d, "_truth_check", lambda *args: {})
+    config = Recovery2DConfig(
+        n_prior_agents=1, n_mistaken_agents=1, n_trials=3, calibrate=2,
+        fit=FitConfig(covariance="hessian"),
+    )  # fmt: skip
+    trials, summary, results = recover_firefly2d(config)
+    assert [method for method, _, _ in fits] == ["map", "marginal"] * 3  # the data, 2 refits
+    for (_, _, by_map), (_, starts, _) in zip(fits[::2], fits[1::2], strict=True):
+        assert torch.equal(starts, by_map.theta_hat)
+    marginal = results["marginal"]
+    assert marginal is fits[1][2]
+    world = trials["task_theta"][:, 0, 0]
+    assert torch.equal(world[1], space.default())  # the mistaken agent's
+    for theta, at, n_trials, _ in simulated:
+        assert torch.equal(theta, marginal.theta_hat) and torch.equal(at, world)
+        assert n_trials == 3
+    assert simulated[0][3] != simulated[1][3]
+    truth = trials["theta"][:, 0, 0]
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    action_model = recover2d._recovery_action_model(config, actor, model)
+    for i, method in enumerate(("map", "marginal")):
+        loss = InverseRationalLoss(model, action_model, n_agents=2, method=method)
+        result, held = results[method], trials.select(*recover2d.RECORDED)
+        with torch.no_grad():
+            beliefs = loss.recovered_beliefs(result.theta_hat, result.nuisance, held)
+        assert torch.equal(trials[method, "belief", "mean"], beliefs["belief", "mean"])
+        refits = [result for _, _, result in fits[2 + i :: 2]]
+        pivots = [interval_pivots(space, marginal.theta_hat.float(), r) for r in refits]
+        expected = Calibration.from_pivots(space.free_names, torch.stack(pivots), "shrunk")
+        calibrated = expected.apply(space, results[method])
+        entry = summary["methods"][method]["calibrated"]
+        assert entry["factor"] == pytest.approx(expected.to_dict()["factor"])
+        assert entry["agents"] == agent_intervals(calibrated)
+        scores = score_recovery(space.free_names, space.names, truth, calibrated)["parameters"]
+        assert entry["parameters"] == scores

@@ -20,12 +20,17 @@ from tensordict import TensorDict
 from test_checkpoint import TINY as TINY_TRAIN
 
 from irc_torchrl.algorithms import recordings
-from irc_torchrl.algorithms.fit import FitResult
+from irc_torchrl.algorithms.calibration import Calibration, agent_intervals, interval_pivots
+from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recordings import format_fit
 from irc_torchrl.cli import build_parser, main
+from irc_torchrl.config import RecordingFitConfig
 from irc_torchrl.data.io import read_trials
+from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel, firefly2d_theta_space
+from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.objectives.fisher import Intervals
+from irc_torchrl.objectives.inverse import InverseRationalLoss
 from irc_torchrl.theta import Parameter, ThetaSpace
 
 SPACE = firefly2d_theta_space()
@@ -400,6 +405,23 @@ def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(
     assert sorted(after) == sorted(before) and after["agent0.csv"] != before["agent0.csv"]
 
 
+def test_a_rerun_of_simulate_keeps_no_earlier_memmap_agent_nor_its_summary(tmp_path, monkeypatch):
+    """Fewer memmap agents over an earlier run: the earlier agents' folders go; a rerun whose
+    summary cannot be written leaves none, not the earlier one claiming the new agent's θ*."""
+    out = tmp_path / "sim"
+    simulate = ["simulate", "--out", str(out), "--quiet", "--format", "memmap", "n_trials=2"]
+    assert main([*simulate, "n_agents=2"]) == 0
+    assert main([*simulate, "n_agents=1"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["agent0", "summary.json"]
+
+    def disk_full(*args):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(recordings, "write_json", disk_full)
+    assert main([*simulate, "n_agents=1", "--seed", "1"]) == 2
+    assert [p.name for p in out.iterdir()] == ["agent0"]
+
+
 @pytest.mark.parametrize(
     "damage, message",
     [
@@ -717,6 +739,69 @@ def test_truth_scores_pair_each_known_truth_with_its_own_recordings_fit():
     assert recordings._truth_scores(space, [None, None], _fit_of([1.0, 2.0])) is None
 
 
+def test_calibrated_coverage_scores_the_calibrated_intervals_against_the_known_truths():
+    """Fits 5.0, 1.1, 2.2 (±0.15), truths unknown, 1.0 and 2.0: twice as wide about θ̂ (in
+    the fit's logit coordinates of [0, 10]) the intervals reach 0.819 and 1.908, covering
+    both truths (the fit's own intervals cover one); every recording gets its own."""
+    space = ThetaSpace([Parameter("a", 0.0, 10.0, 1.0)])
+    fit = _fit_of([5.0, 1.1, 2.2])
+    calibration = Calibration(["a"], torch.tensor([2.0]), torch.zeros(1, 3, 1))
+    scored = {"agents": [{}, {}, {}]}
+    truths = [None, torch.tensor([1.0]), torch.tensor([2.0])]
+    recordings._add_calibrated(scored, space, calibration, fit, truths)
+    calibrated = agent_intervals(calibration.apply(space, fit))
+    assert [agent["calibrated"] for agent in scored["agents"]] == calibrated
+    lows = [agent["calibrated"]["ci_low"]["a"] for agent in scored["agents"][1:]]
+    assert lows == pytest.approx([0.819, 1.908], abs=1e-3)
+    assert scored["calibrated_parameters"]["a"]["coverage"] == 1.0
+    assert scored["calibration"]["factor"] == {"a": 2.0}
+
+
+def test_calibration_simulates_each_recording_at_its_last_methods_fit_in_its_own_world(
+    monkeypatch,
+):
+    """Recordings of 2, 1 and 2 trials in worlds 0.5, 0.25, 0.75, fitted 1.5, 2.5, 3.5 by
+    marginal (1, 2, 3 by map): each dataset is simulated per batch at marginal's θ̂ of its
+    members, in their worlds, with their trial count and a seed of its own; every recording's
+    refits (map 0.03 above, marginal 0.06 below the θ̂ its data were simulated at) are scored
+    against its own θ̂, without particle checks."""
+    space = ThetaSpace([Parameter("a", 0.0, 10.0, 1.0)])
+    records = [
+        TensorDict({"task_theta": torch.full((n, 4, 1), w)}, batch_size=[n, 4])
+        for n, w in ((2, 0.5), (1, 0.25), (2, 0.75))
+    ]
+    fits = {"map": _fit_of([1.0, 2.0, 3.0]), "marginal": _fit_of([1.5, 2.5, 3.5])}
+    simulated, refitted = [], []
+
+    def simulate(model, actor, action_model, result, world, n_trials, seed):
+        simulated.append((result.theta_hat[:, 0].tolist(), world[:, 0].tolist(), n_trials, seed))
+        at = result.theta_hat.view(-1, 1, 1, 1).expand(-1, n_trials, 1, 1)
+        fields = {key: at for key in TRIAL_KEYS}  # each trial holds the θ it was simulated at
+        return TensorDict(fields, batch_size=at.shape[:3])
+
+    def refit(model, action_model, space, synthetic, config, method, *args):
+        refitted.append((method, config.particles, [s.shape[0] for s in synthetic]))
+        at = [float(s["state"][0, 0, 0]) for s in synthetic]
+        shifted = {"map": [a + 0.03 for a in at], "marginal": [a - 0.06 for a in at]}
+        return {m: _fit_of(theta) for m, theta in shifted.items()}, None, None, None, None
+
+    monkeypatch.setattr(recordings, "simulate_at_fits", simulate)
+    monkeypatch.setattr(recordings, "_fit_groups", refit)
+    config = RecordingFitConfig(calibrate=2, particles=5, calibration_tail="own")
+    calibrations = recordings._calibrate_fits(
+        None, None, None, space, records, fits, config, "both", 0, "cpu", False
+    )
+    batches = [([1.5, 3.5], [0.5, 0.75], 2), ([2.5], [0.25], 1)]
+    assert [call[:3] for call in simulated] == batches * 2
+    assert len({call[3] for call in simulated}) == 4  # every dataset and batch its own draw
+    assert refitted == [("both", 0, [2, 1, 2])] * 2
+    generating = fits["marginal"].theta_hat.float()
+    for method, shift in (("map", 0.03), ("marginal", -0.06)):
+        refits = _fit_of([a + shift for a in generating[:, 0].tolist()])
+        expected = interval_pivots(space, generating, refits)
+        assert torch.equal(calibrations[method].pivots, torch.stack([expected, expected]))
+
+
 def test_recordings_are_grouped_by_their_number_of_trials():
     """Recordings of 3, 5, 3 and 3 trials: two batches, in the order first seen."""
     shapes = [(3, 7), (5, 7), (3, 9), (3, 7)]
@@ -793,3 +878,95 @@ def test_format_fit_shows_each_truth_and_identification_and_counts_known_unconve
         "g_v 0.50, g_w 1.00; 1 of these fits did NOT converge, and an interval of a fit that "
         "did not converge may span all the data allow"
     )
+
+
+def _trials_of(simulated: Path, path: Path, trials: list[int]) -> Path:
+    """``path``: the CSV of the simulated agent0.csv's ``trials`` alone (their own numbers)."""
+    header, *rows = (simulated / "agent0.csv").read_text().splitlines()
+    kept = [row for row in rows if int(row.split(",", 1)[0]) in trials]
+    path.write_text("\n".join([header, *kept]) + "\n")
+    return path
+
+
+def test_recordings_of_interleaved_trial_counts_each_get_their_own_fit(
+    simulated, tmp_path, monkeypatch
+):
+    """Recordings of 3, 2, 2 and 3 trials, fitted in two batches ([a, d], d padded to a's 23
+    steps, then [b, c]): each method's log-likelihood, recomputed on the recording alone at
+    its θ̂ (float64 actor: to round-off), its trials' log-likelihoods, beliefs, particle
+    check and calibrated intervals are its own recording's; g_w is held at the given 0.9;
+    marginal starts from each agent's map θ̂."""
+    picks = {"a": [4, 5, 7], "b": [10, 12], "c": [1, 3], "d": [2, 14, 17]}
+    files = [_trials_of(simulated, tmp_path / f"{n}.csv", t) for n, t in picks.items()]
+    actor, model, _ = recordings.load_ensemble_policy("firefly2d")
+    records = [read_trials(path, model) for path in files]
+    assert [r.shape[1] for r in records] == [23, 18, 20, 17]
+    calls = []
+
+    def spy(loss, held, **kwargs):
+        calls.append((loss.method, held["mask"].clone(), kwargs["starts"]))
+        return fit_theta(loss, held, **kwargs)
+
+    factors = {"map": 2.0, "marginal": 3.0}
+
+    def calibrate(model, actor, action_model, space, records, fits, *args):
+        assert list(fits) == list(factors) and len(records) == 4
+        pivots = torch.zeros(1, 4, 1)
+        return {m: Calibration(["g_v"], torch.tensor([f]), pivots) for m, f in factors.items()}
+
+    monkeypatch.setattr(recordings, "fit_theta", spy)
+    monkeypatch.setattr(recordings, "_calibrate_fits", calibrate)
+    config = RecordingFitConfig(
+        n_screen=2, n_starts=1, max_iter=2, fit_lapse=False, calibrate=1, particles=4,
+        actor_dtype="float64", theta={"g_w": 0.9},
+    )  # fmt: skip
+    out = tmp_path / "fit"
+    summary = recordings.fit_recordings(files, out, config, method="both", free=["g_v"])
+    assert summary["free"] == ["g_v"] and summary["fixed"]["g_w"] == pytest.approx(0.9)
+    assert [(method, mask.shape) for method, mask, _ in calls] == [
+        ("map", (2, 3, 23)), ("marginal", (2, 3, 23)), ("map", (2, 2, 20)), ("marginal", (2, 2, 20))
+    ]  # fmt: skip
+    batches = {0: (0, 0), 3: (0, 1), 1: (2, 0), 2: (2, 1)}  # recording: (map's call, row)
+    for i, (call, row) in batches.items():  # padded steps are not recorded
+        assert torch.equal(calls[call][1][row].sum(-1), records[i]["mask"].sum(-1))
+    assert calls[0][2] is None and calls[2][2] is None  # map screens its own starts
+    space = recordings.fit_space(model.theta_space, ["g_v"], {"g_w": 0.9})
+    action_model = censored_action_model(actor, model, "float64", lapse=0.01, fit_lapse=False)
+    with np.load(out / "beliefs.npz") as arrays:
+        beliefs = dict(arrays)
+    for method, part in summary["methods"].items():
+        loss = InverseRationalLoss(model, action_model, theta_space=space, method=method)
+        for i, (agent, record) in enumerate(zip(part["agents"], records, strict=True)):
+            recorded = (str(files[i]), record.shape[0], int(record["mask"].sum()))
+            assert (agent["file"], agent["n_trials"], agent["n_steps"]) == recorded
+            assert agent["theta_hat"]["g_w"] == pytest.approx(0.9)
+            assert agent["lapse"] == 0.01 and "lapse_ci" not in agent  # held, not fitted
+            hat, noise = [[agent["theta_hat"][n] for n in space.names]], [agent["motor_noise"]]
+            theta, nuisance = (torch.tensor(x, dtype=torch.float64) for x in (hat, noise))
+            nuisance = nuisance.log()
+            alone = record.select(*TRIAL_KEYS).unsqueeze(0)
+            with torch.no_grad():
+                per_trial = loss.log_likelihood(theta, nuisance, alone, True)[0]
+            assert agent["log_likelihood"] == pytest.approx(float(per_trial.sum()), rel=1e-9)
+            check = agent["particle_check"]  # beside its own approximation's log-likelihood
+            approximation = check["particle_log_likelihood"] - check["approximation_gap"]
+            assert approximation == pytest.approx(agent["log_likelihood"], rel=1e-9)
+            numbers = record["trial"][:, 0].tolist()
+            for worst in agent["worst_trials"]:
+                own = per_trial[numbers.index(worst["trial"])]
+                assert worst["log_likelihood"] == pytest.approx(float(own), rel=1e-9)
+            calibrated = agent["calibrated"]["std"]["g_v"]
+            assert calibrated == pytest.approx(factors[method] * agent["std"]["g_v"])
+            if method == "map":
+                continue
+            call, row = batches[i]
+            assert float(calls[call + 1][2][row, space.index("g_v")]) == pytest.approx(
+                summary["methods"]["map"]["agents"][i]["theta_hat"]["g_v"], rel=1e-12
+            )
+            label = agent["label"]  # the reported method's beliefs
+            assert np.array_equal(beliefs[f"{label}/trial"], np.array(numbers))
+            ours = beliefs[f"{label}/trial_log_likelihood"]
+            np.testing.assert_allclose(ours, per_trial.numpy(), rtol=1e-9)
+            with torch.no_grad():
+                mean = loss.recovered_beliefs(theta, nuisance, alone)["belief", "mean"][0]
+            np.testing.assert_allclose(beliefs[f"{label}/mean"], mean.numpy(), atol=1e-9)

@@ -12,6 +12,7 @@ import pytest
 import torch
 from matplotlib.image import imread
 from scipy.stats import chi2
+from tensordict import TensorDict
 
 from irc_torchrl.algorithms import recover2d
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
@@ -164,6 +165,41 @@ def test_report_redraws_a_recovery_folders_belief_figures(recovery, tmp_path, ca
     assert main(["report", str(tmp_path)]) == 2
     assert "mean.memmap: 100 bytes; expected" in capsys.readouterr().err
     assert not list(tmp_path.glob("*.png"))
+
+
+def _recovered(methods: list[str]) -> TensorDict:
+    """One agent's trial of two steps with its own belief (mean 0) and each method's
+    recovered one (mean 1, 2, ...), as ``irc recover`` keeps them."""
+    zeros, cov = torch.zeros(1, 1, 2, 5), torch.eye(5).expand(1, 1, 2, 5, 5)
+
+    def belief(mean: float) -> dict:
+        return {"belief": {"mean": zeros + mean, "cov": cov}}
+
+    fields = {"state": zeros, "target": zeros[..., :2], "mask": torch.ones(1, 1, 2).bool()}
+    recovered = {m: belief(i + 1.0) for i, m in enumerate(methods)}
+    return TensorDict({**fields, **belief(0.0), **recovered}, [1, 1, 2])
+
+
+def test_a_recovery_rewritten_with_fewer_methods_leaves_no_figure_of_the_others(
+    tmp_path, monkeypatch
+):
+    """A recovery by map and marginal, then one by map alone into the same folder: the
+    marginal's figures were left beside a summary without it (the lab's own files stay)."""
+    for name in ("plot_recovery", "plot_belief_overhead", "plot_belief_time"):
+        monkeypatch.setattr(recover2d, name, lambda *args, **kwargs: args[-1].touch() or args[-1])
+    for methods in (["map", "marginal"], ["map"]):
+        (tmp_path / "beliefs_time_lab.png").write_bytes(b"the lab's own figure")
+        write_recovery(_recovered(methods), {"methods": dict.fromkeys(methods, {})}, tmp_path)
+    figures = sorted(p.name for p in tmp_path.glob("*.png"))
+    drawn = ["beliefs_overhead_map.png", "beliefs_time_lab.png", "beliefs_time_map.png"]
+    assert figures == [*drawn, "recovery_map.png"]
+
+
+def test_the_belief_figures_set_each_methods_recovered_belief_against_the_agents_own():
+    """Fig. 1E/1F: the agent's own belief (mean 0) against marginal's (2), not map's (1)."""
+    arrays = recover2d._belief_arrays(_recovered(["map", "marginal"]), "marginal", 0, 0.1)
+    assert (arrays["true_mean"] == 0).all() and (arrays["mean"] == 2).all()
+    np.testing.assert_allclose(arrays["time"], [[0.0, 0.1]])
 
 
 def test_the_particle_check_finds_the_hard_e_step_far_from_the_likelihood(recovery):

@@ -11,6 +11,7 @@ beliefs recovered under θ̂ are compared with the beliefs the agents really hel
 
 from __future__ import annotations
 
+import json
 import math
 import statistics
 import time
@@ -520,6 +521,7 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
 def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
     """A recovery's ``summary.json``, ``trials/`` and figures, into ``out``."""
     out = Path(out)
+    earlier = _earlier_methods(out)
     write_json(out / "summary.json", {"command": "recover", **summary})
     with atomic_dir(out / "trials") as folder:
         trials.memmap(folder)
@@ -527,6 +529,25 @@ def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
     for method, entry in summary["methods"].items():
         plot_recovery(entry, out / f"recovery_{method}.png", title=method, units=units)
     belief_figures(trials, summary["methods"], out)
+    # an earlier recovery's figures of a method this one did not run would pass for its own
+    for method in earlier - set(summary["methods"]):
+        for kind in ("recovery", "beliefs_overhead", "beliefs_time"):
+            (out / f"{kind}_{method}.png").unlink(missing_ok=True)
+
+
+def _earlier_methods(out: Path) -> set[str]:
+    """The estimators of the recovery whose ``summary.json`` is in ``out`` (none if another
+    command's or none is)."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return set()
+    if not isinstance(summary, dict) or summary.get("command") != "recover":
+        return set()
+    methods = summary.get("methods")
+    if not isinstance(methods, dict):
+        return set()
+    return set(methods) & set(METHODS)  # only file names this module writes
 
 
 def belief_figures(trials: TensorDict, methods: Iterable[str], out: Path) -> list[Path]:
