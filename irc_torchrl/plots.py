@@ -375,7 +375,7 @@ def _task_units(task: str | None) -> dict[str, str]:
     spaces = {"firefly1d": firefly1d_theta_space, "firefly2d": firefly2d_theta_space}
     if task not in spaces:
         return {}
-    return {p.name: p.unit for p in spaces[task]().parameters}
+    return spaces[task]().units
 
 
 def _agent_figures(

@@ -131,6 +131,11 @@ class ThetaSpace:
         return [p.name for p in self.parameters]
 
     @property
+    def units(self) -> dict[str, str]:
+        """Every parameter's unit by name, as figures and tables label them."""
+        return {p.name: p.unit for p in self.parameters}
+
+    @property
     def dim(self) -> int:
         """How many parameters θ holds, fixed ones included."""
         return len(self.parameters)

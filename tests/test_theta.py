@@ -309,3 +309,10 @@ def test_validate_accepts_both_bounds_and_the_tolerance_beyond_each_but_no_more(
         space.validate(edge + sign * 0.5 * space.tolerance * span)
         with pytest.raises(ValueError, match="gain="):
             space.validate(edge + sign * 2 * space.tolerance * span * torch.tensor([1.0, 0, 0]))
+
+
+def test_units_name_each_parameters_own_unit():
+    space = ThetaSpace(
+        [Parameter("gain", 0.5, 2.0, 1.0, "m/s"), Parameter("noise", 0.0, 1.0, 0.1)]
+    )
+    assert space.units == {"gain": "m/s", "noise": ""}

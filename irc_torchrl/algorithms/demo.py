@@ -90,8 +90,7 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     write_json(out / "summary.json", summary)
     arrays = _figure_arrays(model, q, theta_grid, optimal, learned)
     write_npz(out / "figures.npz", arrays)
-    units = {p.name: p.unit for p in model.theta_space.parameters}  # as irc report labels them
-    plot_recovery(summary, out / "recovery.png", units=units)
+    plot_recovery(summary, out / "recovery.png", units=model.theta_space.units)
     demo_figures(arrays, out)
     return summary
 

@@ -525,7 +525,7 @@ def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
     write_json(out / "summary.json", {"command": "recover", **summary})
     with atomic_dir(out / "trials") as folder:
         trials.memmap(folder)
-    units = {p.name: p.unit for p in Firefly2DModel().theta_space.parameters}  # as irc report's
+    units = Firefly2DModel().theta_space.units
     for method, entry in summary["methods"].items():
         plot_recovery(entry, out / f"recovery_{method}.png", title=method, units=units)
     belief_figures(trials, summary["methods"], out)
