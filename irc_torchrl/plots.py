@@ -25,6 +25,7 @@ import torch  # noqa: E402
 from matplotlib.patches import Circle, Ellipse  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
+from irc_torchrl.checkpoint import first_line  # noqa: E402
 from irc_torchrl.data.files import atomic_path  # noqa: E402
 from irc_torchrl.data.io import load_memmap  # noqa: E402
 from irc_torchrl.objectives.fisher import Z95  # noqa: E402
@@ -426,6 +427,11 @@ def report_run(folder: str | Path) -> list[Path]:
         except (KeyError, TypeError, AttributeError, IndexError) as error:
             raise ValueError(
                 f"report: {path} lacks or mangles field {error}; {_EXPECTED}"
+            ) from None
+        except ValueError as error:  # e.g. an interval edited to exclude its own θ̂
+            raise ValueError(
+                f"report: {path} holds values that cannot be drawn ({first_line(error)}); "
+                f"{_EXPECTED}"
             ) from None
         for figure in drawn:
             os.replace(figure, folder / figure.name)

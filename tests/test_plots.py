@@ -367,3 +367,14 @@ def test_report_of_both_methods_titles_each_methods_figure_as_the_run_does(drawn
     assert written == [tmp_path / "recovery_map.png", tmp_path / "recovery_ml.png"]
     assert [fig.get_suptitle() for fig in drawn] == ["map", "ml"]
     assert drawn[1].axes[1].get_xlabel() == "true b (s)"
+
+
+def test_report_of_an_interval_that_excludes_its_estimate_names_the_file(drawn, tmp_path):
+    """A summary edited by hand so that an interval no longer holds its θ̂ cannot be drawn as
+    error bars: one line naming the file, and no figure left behind."""
+    summary = _fit_folder(tmp_path)
+    summary["agents"][0]["ci_low"]["a"] = summary["agents"][0]["theta_hat"]["a"] + 1.0
+    (tmp_path / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(ValueError, match=r"^report: .*summary.json holds values that cannot be"):
+        plots.report_run(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["beliefs.npz", "summary.json"]
