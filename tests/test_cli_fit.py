@@ -407,19 +407,22 @@ def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(
 
 def test_a_rerun_of_simulate_keeps_no_earlier_memmap_agent_nor_its_summary(tmp_path, monkeypatch):
     """Fewer memmap agents over an earlier run: the earlier agents' folders go; a rerun whose
-    summary cannot be written leaves none, not the earlier one claiming the new agent's θ*."""
+    summary cannot be written leaves the earlier run's agent and summary as they were (it
+    used to leave the new agent with no summary, and nothing to tell a later rerun whose
+    recordings were stale)."""
     out = tmp_path / "sim"
     simulate = ["simulate", "--out", str(out), "--quiet", "--format", "memmap", "n_trials=2"]
     assert main([*simulate, "n_agents=2"]) == 0
     assert main([*simulate, "n_agents=1"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["agent0", "summary.json"]
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
 
     def disk_full(*args):
         raise OSError("disk full")
 
     monkeypatch.setattr(recordings, "write_json", disk_full)
     assert main([*simulate, "n_agents=1", "--seed", "1"]) == 2
-    assert [p.name for p in out.iterdir()] == ["agent0"]
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
 
 
 @pytest.mark.parametrize(

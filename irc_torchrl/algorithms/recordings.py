@@ -137,7 +137,8 @@ def simulate_recordings(
         simulate_s = time.perf_counter() - start
         agents = []
         earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate") or []]
-        # interrupted while writing, the folder keeps the earlier run's recordings and summary
+        # interrupted while writing, the folder keeps the earlier run's recordings and summary;
+        # the summary moves in with the recordings, last (the staged files move by name)
         with staged(out) as staging:
             for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
                 name = f"agent{i}{FORMATS[file_format]}"
@@ -150,21 +151,22 @@ def simulate_recordings(
                         "mean_steps": float(trials[i]["mask"].sum(-1).double().mean()),
                     }
                 )
+            write_s = time.perf_counter() - start - simulate_s
+            summary = {
+                "task": TASK,
+                "command": "simulate",
+                "seed": seed,
+                "checkpoint": str(ckpt["path"]),
+                "format": file_format,
+                "config": config_to_dict(config),
+                "task_theta": space.to_dict(world),
+                "units": _units(space),
+                "agents": agents,
+                "timings": {"simulate_s": simulate_s, "write_s": write_s},
+            }
+            write_json(staging / "summary.json", summary)
             # an earlier run's summary would claim the true θ of recordings it did not write
             (out / "summary.json").unlink(missing_ok=True)
-    summary = {
-        "task": TASK,
-        "command": "simulate",
-        "seed": seed,
-        "checkpoint": str(ckpt["path"]),
-        "format": file_format,
-        "config": config_to_dict(config),
-        "task_theta": space.to_dict(world),
-        "units": _units(space),
-        "agents": agents,
-        "timings": {"simulate_s": simulate_s, "write_s": time.perf_counter() - start - simulate_s},
-    }
-    write_json(out / "summary.json", summary)
     # an earlier run's recordings this one did not rewrite would pass for this run's
     recording = re.compile(rf"agent\d+({'|'.join(re.escape(s) for s in FORMATS.values() if s)})?")
     stale = [n for n in earlier if isinstance(n, str) and recording.fullmatch(n)]
