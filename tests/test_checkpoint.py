@@ -453,3 +453,24 @@ def test_a_resumed_run_runs_its_own_configs_rates_and_noise_saying_what_changed(
     assert rates == [3e-4, 2e-3]
     assert ckpt["exploration"]["sigma_end"].item() == pytest.approx(0.01)
     assert ckpt["exploration"]["sigma_init"].item() == pytest.approx(0.15)
+
+
+def test_checkpoints_fall_at_batch_ends_so_a_resume_misses_no_update(tmp_path, monkeypatch):
+    """With 2 updates per batch and a checkpoint every 3 updates, the checkpoint waits for the
+    batch's end (updates 4, 6, 10, 12): written mid-batch (update 3), it counted the whole
+    batch's frames with half its updates, and a run resumed from it skipped the rest."""
+    from irc_torchrl.algorithms import ensemble
+
+    saved, save = [], ensemble.save_checkpoint
+
+    def spy(path, **kwargs):
+        saved.append(dict(kwargs["state"]["counters"]))
+        return save(path, **kwargs)
+
+    monkeypatch.setattr(ensemble, "save_checkpoint", spy)
+    config = tiny("checkpoint_every=3", "ddpg.total_frames=640")
+    train_ensemble(config, out=tmp_path, progress=False)
+    assert [s["updates"] for s in saved] == [4, 6, 10, 12, 12]  # the last one: the run's end
+    # updates begin once the n-step buffer holds warmup_frames (at 512 frames here); from then
+    # every 64 frames bring 2 updates, none of them left for a resume to make
+    assert all(s["frames"] == 512 + 32 * s["updates"] for s in saved)

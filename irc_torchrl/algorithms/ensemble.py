@@ -205,7 +205,8 @@ class Firefly2DConfig:
     device: str = "cpu"
     #: θ parameters held fixed beyond the task's own ({name: value}); all fixed = a specialist
     theta_fixed: dict = field(default_factory=dict)
-    #: write a checkpoint every this many gradient updates (and at the end)
+    #: write a checkpoint every this many gradient updates (at the end of the batch that
+    #: reaches them, so a resume misses none of its updates) and at the end
     checkpoint_every: int = 1000
     #: "csv", "tensorboard" (when installed) or "none"
     logger: str = "csv"
@@ -609,7 +610,8 @@ def train_ensemble(
 
     Args:
         config: the settings (default: the embedded default of :class:`Firefly2DConfig`).
-        out: folder for ``checkpoint.pt`` (every ``checkpoint_every`` updates and at the end),
+        out: folder for ``checkpoint.pt`` (at the end of the batch whose updates reach each
+            multiple of ``checkpoint_every``, and at the end),
             ``config.yaml``, ``summary.json`` and the logger's files; ``None`` writes nothing.
         resume: a checkpoint to continue from. Networks, optimisers, exploration noise,
             counters and RNG states are restored; the replay buffer and the trials in flight
@@ -781,6 +783,7 @@ def _train(
             bar.update(new_frames)
         if len(buffer) < warmup:
             continue
+        before = updates
         for _ in range(d.updates_per_batch):
             sample = buffer.sample()
             losses = loss(sample)
@@ -810,8 +813,10 @@ def _train(
                 logger.log({k: losses[k].item() for k in ("loss_actor", value_key)}, frames)
             if updates % e.every == 0:
                 evaluate()
-            if updates % config.checkpoint_every == 0:
-                checkpoint()
+        # at the end of the batch whose updates reach a multiple of checkpoint_every: its
+        # frames are counted, so a run resumed from mid-batch would skip the batch's rest
+        if updates // config.checkpoint_every > before // config.checkpoint_every:
+            checkpoint()
         collector.update_policy_weights_()
     collector.shutdown()
     if bar is not None:
