@@ -758,3 +758,21 @@ def test_the_random_warm_up_takes_uniform_actions_before_the_policy_acts():
     assert actions.shape[0] == 8 and actions[4:].abs().max() == 0
     warm = actions[:4].reshape(-1, 2)
     assert warm.abs().max() <= 1 and warm.abs().mean() == pytest.approx(0.5, abs=0.05)
+
+
+def test_the_smoothness_term_jitters_each_belief_mean_by_independent_gaussian_noise():
+    """For an actor linear in the belief mean, a ↦ W m, the term's expectation is σ² ‖W‖²_F
+    (independent N(0, σ²) moves of every component); a common shift of the means would give
+    ‖W·σ1‖² instead, and leaving the covariance or θ unheld would change nothing here."""
+    from tensordict.nn import TensorDictModule
+
+    gen = torch.Generator().manual_seed(0)
+    weight = torch.randn(2, 5, generator=gen, dtype=torch.float64)
+    actor = TensorDictModule(lambda mean: mean @ weight.T, [BELIEF_MEAN], ["action"])
+    batch = TensorDict(
+        {BELIEF_MEAN: torch.randn(40_000, 5, generator=gen, dtype=torch.float64)}, [40_000]
+    )
+    torch.manual_seed(0)
+    sigma = 0.05
+    term = _smoothness_loss(actor, batch, sigma).item()
+    assert term == pytest.approx(sigma**2 * weight.pow(2).sum().item(), rel=0.03)
