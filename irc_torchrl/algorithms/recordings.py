@@ -15,9 +15,8 @@ import dataclasses
 import json
 import math
 import re
-import shutil
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,13 @@ from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
-from irc_torchrl.data.files import staged, write_json, write_npz
+from irc_torchrl.data.files import (
+    earlier_summary,
+    remove_stale,
+    staged,
+    write_json,
+    write_npz,
+)
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.data.units import UNITS
@@ -170,34 +175,18 @@ def simulate_recordings(
     # an earlier run's recordings this one did not rewrite would pass for this run's
     recording = re.compile(rf"agent\d+({'|'.join(re.escape(s) for s in FORMATS.values() if s)})?")
     stale = [n for n in earlier if isinstance(n, str) and recording.fullmatch(n)]
-    _remove_stale(out, stale, {agent["file"] for agent in agents})
+    remove_stale(out, stale, {agent["file"] for agent in agents})
     return summary
 
 
 def _earlier_agents(out: Path, command: str) -> list[dict] | None:
     """The ``agents`` of the ``summary.json`` an earlier ``irc <command>`` left in ``out``
     (``None`` where no such run did: then nothing there is that run's to remove)."""
-    try:
-        summary = json.loads((out / "summary.json").read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(summary, dict) or summary.get("command") != command:
+    summary = earlier_summary(out, command)
+    if summary is None:
         return None
     agents = summary.get("agents")
     return [a for a in agents if isinstance(a, dict)] if isinstance(agents, list) else []
-
-
-def _remove_stale(out: Path, names: Iterable[str], kept: set[str]) -> None:
-    """Remove the files (or memmap folders) ``names`` an earlier run wrote in ``out`` that this
-    run did not write again (``kept``)."""
-    for name in set(names) - kept:
-        if Path(name).name != name:  # only the run's own files, never a path out of it
-            continue
-        path = out / name
-        if path.is_dir():
-            shutil.rmtree(path)
-        elif path.exists():
-            path.unlink()
 
 
 def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> ThetaSpace:
@@ -399,7 +388,7 @@ def fit_recordings(
             if isinstance(agent.get("label"), str)
             for view in ("overhead", "time")
         ]
-        _remove_stale(out, figures, written)
+        remove_stale(out, figures, written)
     return summary
 
 

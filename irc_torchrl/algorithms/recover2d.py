@@ -11,7 +11,6 @@ beliefs recovered under θ̂ are compared with the beliefs the agents really hel
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import time
@@ -57,7 +56,13 @@ from irc_torchrl.config import (
     _probability,
     config_to_dict,
 )
-from irc_torchrl.data.files import atomic_dir, write_json, write_text
+from irc_torchrl.data.files import (
+    atomic_dir,
+    earlier_summary,
+    remove_stale,
+    write_json,
+    write_text,
+)
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
@@ -521,33 +526,20 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
 def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
     """A recovery's ``summary.json``, ``trials/`` and figures, into ``out``."""
     out = Path(out)
-    earlier = _earlier_methods(out)
+    earlier = earlier_summary(out, "recover")
     write_json(out / "summary.json", {"command": "recover", **summary})
     with atomic_dir(out / "trials") as folder:
         trials.memmap(folder)
     units = Firefly2DModel().theta_space.units
-    for method, entry in summary["methods"].items():
+    written = [
         plot_recovery(entry, out / f"recovery_{method}.png", title=method, units=units)
-    belief_figures(trials, summary["methods"], out)
-    # an earlier recovery's figures of a method this one did not run would pass for its own
-    for method in earlier - set(summary["methods"]):
-        for kind in ("recovery", "beliefs_overhead", "beliefs_time"):
-            (out / f"{kind}_{method}.png").unlink(missing_ok=True)
-
-
-def _earlier_methods(out: Path) -> set[str]:
-    """The estimators of the recovery whose ``summary.json`` is in ``out`` (none if another
-    command's or none is)."""
-    try:
-        summary = json.loads((out / "summary.json").read_text())
-    except (OSError, ValueError):
-        return set()
-    if not isinstance(summary, dict) or summary.get("command") != "recover":
-        return set()
-    methods = summary.get("methods")
-    if not isinstance(methods, dict):
-        return set()
-    return set(methods) & set(METHODS)  # only file names this module writes
+        for method, entry in summary["methods"].items()
+    ]
+    written += belief_figures(trials, summary["methods"], out)
+    if earlier is not None:  # an earlier recovery's figures this one did not draw again
+        kinds = ("recovery", "beliefs_overhead", "beliefs_time")
+        figures = [f"{kind}_{method}.png" for kind in kinds for method in METHODS]
+        remove_stale(out, figures, {path.name for path in written})
 
 
 def belief_figures(trials: TensorDict, methods: Iterable[str], out: Path) -> list[Path]:

@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader never sees a half-written file."""
+"""Atomic file writes (a reader never sees a half-written file), and what a rerun into a run
+folder reads of the earlier run there to remove what it would leave stale."""
 
 from __future__ import annotations
 
@@ -7,13 +8,22 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_dir", "atomic_path", "staged", "write_json", "write_npz", "write_text"]
+__all__ = [
+    "atomic_dir",
+    "atomic_path",
+    "earlier_summary",
+    "remove_stale",
+    "staged",
+    "write_json",
+    "write_npz",
+    "write_text",
+]
 
 
 @contextmanager
@@ -115,3 +125,28 @@ def _finite(value: object) -> object:
     if isinstance(value, list | tuple):
         return [_finite(item) for item in value]
     return value
+
+
+def earlier_summary(out: Path, command: str) -> dict | None:
+    """The ``summary.json`` an earlier ``irc <command>`` left in ``out`` (``None`` where no such
+    run did: then nothing there is that run's to remove)."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("command") != command:
+        return None
+    return summary
+
+
+def remove_stale(out: Path, names: Iterable[str], kept: set[str]) -> None:
+    """Remove the files (or memmap folders) ``names`` an earlier run wrote in ``out`` that this
+    run did not write again (``kept``)."""
+    for name in set(names) - kept:
+        if Path(name).name != name:  # only the run's own files, never a path out of it
+            continue
+        path = out / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.exists():
+            path.unlink()
