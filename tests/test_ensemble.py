@@ -15,7 +15,9 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from irc_torchrl.algorithms.ensemble import (
     Firefly2DConfig,
+    _clone_loss,
     _policy_report,
+    _pre_activation_penalty,
     _smoothness_loss,
     config_from_dict,
     critic_slices,
@@ -776,3 +778,97 @@ def test_the_smoothness_term_jitters_each_belief_mean_by_independent_gaussian_no
     sigma = 0.05
     term = _smoothness_loss(actor, batch, sigma).item()
     assert term == pytest.approx(sigma**2 * weight.pow(2).sum().item(), rel=0.03)
+
+
+@pytest.fixture(scope="module")
+def clipped():
+    """A tiny run with no cloning whose gradient clip lies far below its gradients' norms, and
+    what it did recorded: each call of ``clip_grad_norm_`` (the parameters it was given, their
+    gradient's norm before and after it, the bound), the weight of the pre-activation penalty
+    at each update (the gradient of the total loss by the penalty) and the loss module."""
+    from irc_torchrl.algorithms import ensemble
+
+    log = {"clips": [], "penalty_weights": [], "loss": []}
+    clip, penalty, soft_update = (
+        torch.nn.utils.clip_grad_norm_,
+        ensemble._pre_activation_penalty,
+        ensemble.SoftUpdate,
+    )
+
+    def clip_norm(parameters, max_norm, *args, **kwargs):
+        parameters = list(parameters)
+        before = clip(parameters, max_norm, *args, **kwargs)
+        grads = [p.grad.norm() for p in parameters if p.grad is not None]
+        after = torch.stack(grads).norm().item()
+        log["clips"].append(({id(p) for p in parameters}, before.item(), after, max_norm))
+        return before
+
+    def pre_activation(actor, batch):
+        value = penalty(actor, batch)
+        value.register_hook(lambda grad: log["penalty_weights"].append(grad.item()))
+        return value
+
+    def targets(loss, **kwargs):
+        log["loss"].append(loss)
+        return soft_update(loss, **kwargs)
+
+    config = tiny(
+        *("ddpg.clone_updates=0", "ddpg.critic_updates=0", "ddpg.total_frames=640"),
+        *("ddpg.max_grad_norm=0.001", "ddpg.pre_activation_weight=0.25"),
+    )
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(torch.nn.utils, "clip_grad_norm_", clip_norm)
+        patch.setattr(ensemble, "_pre_activation_penalty", pre_activation)
+        patch.setattr(ensemble, "SoftUpdate", targets)
+        result = train_ensemble(config, progress=False, seed=5)
+    return result, log
+
+
+def test_each_networks_gradient_is_clipped_to_max_grad_norm_before_every_update(clipped):
+    """The actor's and the critic's gradients are each clipped on their own, at every update,
+    to a norm of at most ``max_grad_norm`` (here beyond it before: the clip acts)."""
+    result, log = clipped
+    loss = log["loss"][0]
+    actor = {id(p) for p in loss.actor_network_params.values(True, True)}
+    critic = {id(p) for p in loss.value_network_params.values(True, True)}
+    named = {frozenset(actor): "actor", frozenset(critic): "critic"}
+    clipped_sets = [named.get(frozenset(params), "other") for params, *_ in log["clips"]]
+    assert result.updates == 12
+    assert clipped_sets == ["actor", "critic"] * result.updates, "not both networks clipped"
+    for params, before, after, max_norm in log["clips"]:
+        assert max_norm == 0.001
+        assert before > 10 * max_norm, (named[frozenset(params)], before)
+        assert after == pytest.approx(max_norm, rel=1e-3), (named[frozenset(params)], after)
+
+
+def test_the_pre_activation_penalty_enters_the_actors_loss_at_its_weight(clipped):
+    """At every update (the actor moves at each, policy_delay=1), by pre_activation_weight."""
+    result, log = clipped
+    assert log["penalty_weights"] == pytest.approx([0.25] * result.updates)
+
+
+def test_the_pre_activation_penalty_is_the_mean_square_of_the_actors_pre_tanh_output():
+    """rlkit's ``policy_pre_activation_weight`` term: the square of ``param`` averaged over the
+    batch and the action's components, whose gradient grows with ``param`` (a mean absolute
+    value, 1.875 here, would push as hard on small outputs as on large ones)."""
+    from tensordict.nn import TensorDictModule
+
+    param = torch.tensor([[3.0, -4.0], [0.5, 0.0]], requires_grad=True)
+    actor = TensorDictModule(lambda x: x, ["x"], ["param"])
+    term = _pre_activation_penalty(actor, TensorDict({"x": param}, [2]))
+    assert term.item() == pytest.approx((9 + 16 + 0.25) / 4, rel=1e-6)
+    term.backward()
+    torch.testing.assert_close(param.grad, param.detach() / 2)
+
+
+def test_the_clones_target_is_the_teachers_action_held_off_the_bounds_at_097():
+    """The pursuit controller saturates at ±1, where tanh has no finite preimage: the clone is
+    fitted to its actions clamped to ±0.97, those within the bounds kept as they are."""
+    from tensordict.nn import TensorDictModule
+
+    mine, its = torch.tensor([[0.0, 0.0], [0.5, 0.0]]), torch.tensor([[1.0, -1.0], [0.5, -0.2]])
+    batch = TensorDict({"mine": mine, "its": its}, [2])
+    actor = TensorDictModule(lambda mine: mine, ["mine"], ["action"])
+    teacher = TensorDictModule(lambda its: its, ["its"], ["action"])
+    distance = _clone_loss(actor, teacher, batch).item()
+    assert distance == pytest.approx((0.97**2 + 0.97**2 + 0 + 0.2**2) / 4, rel=1e-6), distance

@@ -794,8 +794,8 @@ def _train(
                 if teacher is not None and weight > 0:
                     total = total + weight * _clone_loss(loss.actor_network, teacher, sample)
                 if d.pre_activation_weight > 0:
-                    param = loss.actor_network(sample.clone())["param"]
-                    total = total + d.pre_activation_weight * param.pow(2).mean()
+                    penalty = _pre_activation_penalty(loss.actor_network, sample)
+                    total = total + d.pre_activation_weight * penalty
                 if d.smoothness_weight > 0:
                     jitter = _smoothness_loss(loss.actor_network, sample, d.smoothness_sigma)
                     total = total + d.smoothness_weight * jitter
@@ -913,6 +913,11 @@ def _clone_loss(
     # the teacher saturates at the bounds, where tanh has no finite preimage
     target = teacher(batch.clone())["action"].clamp(-0.97, 0.97)
     return (actor(batch.clone())["action"] - target).pow(2).mean()
+
+
+def _pre_activation_penalty(actor: TensorDictModuleBase, batch: TensorDictBase) -> torch.Tensor:
+    """Mean square of the actor's pre-tanh outputs (``param``) on ``batch``'s beliefs."""
+    return actor(batch.clone())["param"].pow(2).mean()
 
 
 def _smoothness_loss(
