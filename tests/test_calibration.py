@@ -518,5 +518,5 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
         entry = summary["methods"][method]["calibrated"]
         assert entry["factor"] == pytest.approx(expected.to_dict()["factor"])
         assert entry["agents"] == agent_intervals(calibrated)
-        scores = score_recovery(space.free_names, space.names, truth, calibrated)["parameters"]
+        scores = score_recovery(space, truth, calibrated)["parameters"]
         assert entry["parameters"] == scores

@@ -243,7 +243,8 @@ def test_the_demos_q_figure_reads_q_at_the_start_of_a_trial_at_the_offset_it_plo
 def test_the_demo_summary_line_lists_the_ratios_and_every_timing():
     stats = {
         "coverage": 1.0, "coverage_ci": [0.5, 1.0], "z_median": None, "z_robust_sd": 1.0,
-        "median_abs_error": 0.1, "median_rel_error": 0.2, "median_ci_width": 0.3,
+        "median_abs_error": 0.1, "median_rel_error": 0.2, "median_range_error": 0.05,
+        "median_ci_width": 0.3,
     }  # fmt: skip
     summary = {
         "parameters": {"g_a": stats},

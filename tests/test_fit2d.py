@@ -140,7 +140,7 @@ def test_summary_scores_both_groups_of_agents(recovery, shipped):
     for method, result in fits.items():
         by_group = summary["methods"][method]["by_group"]
         for group, rows in (("prior", [0, 1]), ("mistaken", [2])):
-            own = score_recovery(space.free_names, space.names, truth[rows], result.select(rows))
+            own = score_recovery(space, truth[rows], result.select(rows))
             assert by_group[group] == own["parameters"], (method, group)
 
 

@@ -8,6 +8,7 @@ import torch
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.recovery import coverage_interval, format_parameters, score_recovery
 from irc_torchrl.objectives.fisher import Intervals
+from irc_torchrl.theta import Parameter, ThetaSpace
 
 
 def _fit_of(hat: torch.Tensor, intervals: Intervals) -> FitResult:
@@ -55,7 +56,8 @@ def test_scores_report_coverage_interval_and_z_calibration():
         profiled=torch.zeros(5, 2, dtype=torch.bool),
     )
     result = _fit_of(hat, intervals)
-    scores = score_recovery(["a"], ["a", "b"], truth, result)["parameters"]
+    space = ThetaSpace([Parameter("a", 0.0, 2.0, 1.0), Parameter("b", 0.0, 10.0, 5.0)], {"b": 5.0})
+    scores = score_recovery(space, truth, result)["parameters"]
     assert list(scores) == ["a"]
     a = scores["a"]
     assert a["coverage"] == 0.6
@@ -70,7 +72,8 @@ def test_scores_report_coverage_interval_and_z_calibration():
 def test_scores_read_each_free_parameters_own_column_and_take_medians_against_the_truth():
     """Five agents, a fixed at 1 (θ's first column) and b free: each score is a hand-computed
     median over agents of b alone, errors relative to θ* (not θ̂), an interval covering a truth
-    on either of its ends, and the agents' entries carry their own θ*."""
+    on either of its ends, and the agents' entries carry their own θ*. The error relative to
+    b's prior range [0, 20] is the median |err| over 20."""
     truth_b = torch.tensor([2.0, 4.0, 1.0, 5.0, 10.0])
     error_b = torch.tensor([0.2, -0.4, 0.3, 1.0, -4.0])  # |err| 0.2 0.4 0.3 1 4; /θ* .1 .1 .3 .2 .4
     truth = torch.stack([torch.ones(5), truth_b], -1)
@@ -89,15 +92,17 @@ def test_scores_read_each_free_parameters_own_column_and_take_medians_against_th
                                [False, False]]),
     )  # fmt: skip
     result = _fit_of(hat, intervals)
-    summary = score_recovery(["b"], ["a", "b"], truth, result)
+    space = ThetaSpace([Parameter("a", 0.0, 2.0, 1.0), Parameter("b", 0.0, 20.0, 5.0)], {"a": 1.0})
+    summary = score_recovery(space, truth, result)
     b = summary["parameters"]["b"]
     assert list(summary["parameters"]) == ["b"]
     assert b["coverage"] == 0.6 and b["coverage_ci"] == pytest.approx(coverage_interval(3, 5))
     assert b["median_abs_error"] == pytest.approx(0.4)
     assert b["median_rel_error"] == pytest.approx(0.2)
+    assert b["median_range_error"] == pytest.approx(0.02)
     assert b["median_ci_width"] == pytest.approx(0.8)
     assert b["z_median"] == pytest.approx(2.0)
     assert b["identified_fraction"] == 0.8 and b["profiled_fraction"] == 0.2
     assert [agent["theta_true"]["b"] for agent in summary["agents"]] == truth_b.tolist()
     row = format_parameters(summary["parameters"])[1].split()
-    assert row[0] == "b" and row[-3:] == ["0.4000", "0.2000", "0.8000"]
+    assert row[0] == "b" and row[-4:] == ["0.4000", "0.2000", "0.0200", "0.8000"]

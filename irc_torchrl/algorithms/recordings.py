@@ -552,7 +552,7 @@ def _truth_scores(
     if not known:
         return None
     theta_true = torch.stack([truths[i] for i in known])
-    return score_recovery(space.free_names, space.names, theta_true, result.select(known))
+    return score_recovery(space, theta_true, result.select(known))
 
 
 def _add_calibrated(

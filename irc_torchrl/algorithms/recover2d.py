@@ -309,11 +309,9 @@ def recover_firefly2d(
     }
     fitted = _fit_methods(config, model, action_model, held, progress)
     for method, (loss, result, fit_s) in fitted.items():
-        scored = score_recovery(space.free_names, space.names, theta_true, result)
+        scored = score_recovery(space, theta_true, result)
         groups = {
-            group: score_recovery(
-                space.free_names, space.names, theta_true[rows], result.select(rows)
-            )["parameters"]
+            group: score_recovery(space, theta_true[rows], result.select(rows))["parameters"]
             for group, rows in (("prior", ~mistaken), ("mistaken", mistaken))
             if rows.any()
         }
@@ -349,7 +347,7 @@ def recover_firefly2d(
         calibrations = _calibrate(config, model, actor, action_model, held, last, progress)
         for method, calibration in calibrations.items():
             calibrated = calibration.apply(space, fitted[method].result)
-            scored = score_recovery(space.free_names, space.names, theta_true, calibrated)
+            scored = score_recovery(space, theta_true, calibrated)
             summary["methods"][method]["calibrated"] = {
                 **calibration.to_dict(),
                 "parameters": scored["parameters"],

@@ -20,6 +20,7 @@ from irc_torchrl.config import AgentsConfig, FitConfig
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
+from irc_torchrl.theta import ThetaSpace
 
 __all__ = ["coverage_interval", "format_parameters", "recover_agents", "score_recovery"]
 
@@ -65,7 +66,7 @@ def recover_agents(
         progress=progress,
         workers=fit.workers,
     )
-    summary = score_recovery(space.free_names, space.names, theta_true, result)
+    summary = score_recovery(space, theta_true, result)
     summary["timings"] = {"simulate_s": simulated - start, "fit_s": time.perf_counter() - simulated}
     return trials, summary, result
 
@@ -96,12 +97,15 @@ def _z_calibration(z: torch.Tensor) -> dict[str, float | None]:
     }
 
 
-def score_recovery(
-    free: list[str], names: list[str], theta_true: torch.Tensor, result: FitResult
-) -> dict:
+def score_recovery(space: ThetaSpace, theta_true: torch.Tensor, result: FitResult) -> dict:
     """Per-agent entries and per-parameter coverage (with its Clopper-Pearson interval),
     errors, interval widths and the median and robust sd of the z-scores ``(θ̂ − θ*) / std``
-    (0 and 1 for honest intervals; a robust sd of 1.4 says the intervals are 1.4× too narrow)."""
+    (0 and 1 for honest intervals; a robust sd of 1.4 says the intervals are 1.4× too narrow).
+
+    Errors are given relative to θ* and to the width of the parameter's prior range: the first
+    grows without bound for a θ* near 0 (a small effort cost), the second compares parameters.
+    """
+    names = space.names
     agents = []
     for i in range(theta_true.shape[0]):
         entry = result.agent(i)
@@ -109,11 +113,12 @@ def score_recovery(
         entry["nuisance"] = [float(v) for v in result.nuisance[i]]
         agents.append(entry)
     parameters = {}
-    for name in free:
+    for name in space.free_names:
         j = names.index(name)
         truth, hat = theta_true[:, j].double(), result.theta_hat[:, j]
         low, high = result.intervals.low[:, j], result.intervals.high[:, j]
         error = (hat - truth).abs()
+        span = space[name].high - space[name].low
         covered = int(((low <= truth) & (truth <= high)).sum())
         std = result.intervals.std[:, j].double()
         # fixed (std 0) and unidentified (std inf) parameters have no z-score
@@ -124,6 +129,7 @@ def score_recovery(
             **_z_calibration(z),
             "median_abs_error": statistics.median(error.tolist()),
             "median_rel_error": statistics.median((error / truth.abs().clamp_min(1e-12)).tolist()),
+            "median_range_error": statistics.median(error.tolist()) / span,
             "median_ci_width": statistics.median((high - low).tolist()),
             "identified_fraction": float(result.intervals.identified[:, j].double().mean()),
             "profiled_fraction": float(result.intervals.profiled[:, j].double().mean()),
@@ -139,7 +145,7 @@ def format_parameters(parameters: dict) -> list[str]:
 
     lines = [
         f"{'parameter':<14}{'coverage':>9}{'its 95% CI':>14}{'z median':>9}{'z rsd':>7}"
-        f"{'median |err|':>14}{'median rel err':>16}{'median CI width':>17}"
+        f"{'median |err|':>14}{'median rel err':>16}{'err/range':>11}{'median CI width':>17}"
     ]
     for name, s in parameters.items():
         low, high = s["coverage_ci"]
@@ -147,6 +153,7 @@ def format_parameters(parameters: dict) -> list[str]:
             f"{name:<14}{s['coverage']:>9.2f}{f'{low:.2f}–{high:.2f}':>14}"
             f"{number(s['z_median'], '+.2f'):>9}{number(s['z_robust_sd'], '.2f'):>7}"
             f"{s['median_abs_error']:>14.4f}{s['median_rel_error']:>16.4f}"
+            f"{s['median_range_error']:>11.4f}"
             f"{s['median_ci_width']:>17.4f}"
         )
     return lines
