@@ -448,3 +448,26 @@ def test_actor_and_critic_use_the_activation_they_are_given():
     for network in (actor, critic):
         kinds = {type(m) for m in network.modules()}
         assert torch.nn.Tanh in kinds and torch.nn.Softplus not in kinds
+
+
+def test_an_unbounded_action_space_scores_and_differentiates_as_the_plain_gaussian():
+    """A task with an ``Unbounded`` action spec has the dtype's extremes for bounds: no action
+    is clipped, the score is the Gaussian density, and its gradients (map's ``log_prob`` and
+    marginal's ``assimilate``) are finite (an unread tail term far out once made them NaN)."""
+    big = torch.finfo(torch.float32).max
+    bounds = big * torch.ones(2)
+    model = CensoredGaussianActionModel(Affine(torch.eye(2, dtype=torch.float64)), -bounds, bounds)
+    features = torch.tensor([[0.4, -0.2]], dtype=torch.float64, requires_grad=True)
+    nuisance = model.nuisance_init.double().clone().requires_grad_(True)
+    action = torch.tensor([[0.5, -3.0]], dtype=torch.float64)
+    logp = model.log_prob(features, action, nuisance)
+    std = model.motor_noise(nuisance)
+    expected = torch.distributions.Normal(model.actor(features), std).log_prob(action).sum(-1)
+    torch.testing.assert_close(logp, expected, rtol=1e-12, atol=1e-12)
+    (gradient,) = torch.autograd.grad(logp.sum(), features, create_graph=True)
+    (curvature,) = torch.autograd.grad(gradient.sum(), nuisance)
+    assert torch.isfinite(gradient).all() and torch.isfinite(curvature).all()
+    cov = 0.1 * torch.eye(2, dtype=torch.float64)
+    mean = features[0].tanh()
+    out = model.assimilate(mean, cov, cov, cov, action[0], nuisance)
+    assert all(torch.isfinite(g).all() for g in torch.autograd.grad(out[0], (features, nuisance)))

@@ -1,12 +1,16 @@
 """Held trials: every malformed input is refused before any work, with a message naming it."""
 
+import math
+
 import pytest
 import torch
+from torchrl.data import Unbounded
 
 from irc_torchrl.algorithms.simulate import first_trial_mask, simulate_agents
 from irc_torchrl.data.files import atomic_path, staged, write_json
 from irc_torchrl.data.trajectories import validate_trials
-from irc_torchrl.envs import Firefly1DModel
+from irc_torchrl.envs import Firefly1DModel, Firefly2DModel, TaskEnv
+from irc_torchrl.envs.model import action_in_spec
 
 
 @pytest.fixture(scope="module")
@@ -173,3 +177,21 @@ def test_a_trial_longer_than_the_task_allows_is_refused(model, trials):
     longer["mask"][0, 2, :] = True
     with pytest.raises(ValueError, match=f"agent 0, trial 2, step {model.max_steps}; the task"):
         validate_trials(longer, model)
+
+
+def test_an_unbounded_action_spec_admits_every_finite_action():
+    """A task whose controls have no bounds (an ``Unbounded`` spec, its box the dtype's
+    extremes) steps with any finite action and its trials validate; NaN is still refused."""
+    model = Firefly2DModel()
+    model.action_spec = Unbounded(shape=(2,))
+    action = torch.tensor([[5.0, 0.0], [-1e6, 0.3]])
+    assert action_in_spec(model.action_spec, action).all()
+    assert action_in_spec(model.action_spec, action, slack=1e-6).all()
+    assert not action_in_spec(model.action_spec, torch.tensor([[math.nan, 0.0]])).any()
+    env = TaskEnv(model, batch_size=(2,))
+    env.step(env.reset().set("action", action))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(env.reset().set("action", torch.tensor([[math.nan, 0.0], [0.0, 0.0]])))
+    theta = model.theta_space.default().expand(2, -1)
+    trials = simulate_agents(model, None, theta, 3, seed=0)
+    assert validate_trials(trials, model).batch_size == trials.batch_size

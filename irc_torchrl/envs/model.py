@@ -125,7 +125,13 @@ class TaskModel(abc.ABC):
         step: torch.Tensor,
         theta: torch.Tensor,
     ) -> torch.Tensor:
-        """What the actor and critic read: belief features, then normalised θ, ``[*B, df]``."""
+        """What the actor and critic read: belief features, then normalised θ, ``[*B, df]``.
+
+        The arguments' batch dimensions broadcast, and need not match: the inverse's hard
+        E-step passes the beliefs at every step ``[A, n, T, ·]`` beside each trial's target and
+        θ ``[A, n, 1, ·]`` and the step ``[1, 1, T, 1]``, so expand the parts to their common
+        batch shape before concatenating them.
+        """
 
     @property
     @abc.abstractmethod
@@ -158,7 +164,8 @@ def _batched_jacobian(fn, state: torch.Tensor, *args: torch.Tensor) -> torch.Ten
 def action_in_spec(spec: TensorSpec, action: torch.Tensor, slack: float = 0.0) -> torch.Tensor:
     """Per-step validity ``[..]`` of ``action`` (``[..]`` discrete, ``[.., da]`` continuous).
 
-    ``slack`` (a fraction of each bound's range) tolerates round-off in recorded files.
+    ``slack`` (a fraction of each bound's range) tolerates round-off in recorded files. An
+    ``Unbounded`` spec (its box the dtype's extremes) admits every finite action.
     """
     if isinstance(spec, Categorical):
         integral = (
@@ -168,5 +175,7 @@ def action_in_spec(spec: TensorSpec, action: torch.Tensor, slack: float = 0.0) -
         )
         return integral & (action >= 0) & (action < spec.n)
     low, high = spec.space.low.to(action.device), spec.space.high.to(action.device)
-    margin = slack * (high - low)
-    return ((action >= low - margin) & (action <= high + margin)).all(-1)
+    if slack:  # an unbounded box's range overflows to inf, and 0 × inf would refuse everything
+        margin = slack * (high - low)
+        low, high = low - margin, high + margin
+    return ((action >= low) & (action <= high)).all(-1)

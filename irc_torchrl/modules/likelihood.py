@@ -141,6 +141,14 @@ def _mix_lapse(
     return mixed, (model - mixed).exp()
 
 
+def _tail_where_clipped(clipped: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """``z`` (a bound's distance from the mean, in stds) where the action is ``clipped``,
+    0 elsewhere: the tail's terms are read at clipped actions only, and an unbounded box's
+    bound (±3e38, the dtype's extreme) puts the others where ``log Φ`` has an infinite slope,
+    which the zero gradient of an unread term would turn into NaN (0 × inf)."""
+    return torch.where(clipped, z, torch.zeros_like(z))
+
+
 def _mills_ratio(alpha: torch.Tensor) -> torch.Tensor:
     """``φ(α) / Φ(-α)``, accurate for every ``α``: beyond the mean through ``erfcx``, since
     ``exp(-α²/2 - log Φ(-α))`` loses the digits that the tail's variance factor
@@ -266,9 +274,10 @@ class CensoredGaussianActionModel(nn.Module):
         low, high = self.low.to(features.dtype), self.high.to(features.dtype)
         z = (action - mean) / std
         density = _standard_log_density(z, std)
-        below = torch.special.log_ndtr((low - mean) / std)
-        above = torch.special.log_ndtr((mean - high) / std)
         lower, upper = action <= low + self.atol, action >= high - self.atol
+        # each tail at its clipped actions only (see _tail_where_clipped)
+        below = torch.special.log_ndtr(_tail_where_clipped(lower, (low - mean) / std))
+        above = torch.special.log_ndtr(_tail_where_clipped(upper, (mean - high) / std))
         logp = torch.where(upper, above, torch.where(lower, below, density))
         logs = self._lapse_logs(nuisance)
         if logs is not None:
@@ -362,10 +371,10 @@ class CensoredGaussianActionModel(nn.Module):
             upper = a >= high[i] - self.atol
             lower = a <= low[i] + self.atol
             sign = torch.where(lower, -torch.ones_like(m), torch.ones_like(m))
-            alpha = torch.where(lower, m - low[i], high[i] - m) / std
+            clipped = upper | lower
+            alpha = _tail_where_clipped(clipped, torch.where(lower, m - low[i], high[i] - m) / std)
             tail = torch.special.log_ndtr(-alpha)
             ratio = _mills_ratio(alpha)
-            clipped = upper | lower
             keep = torch.ones_like(m) if scored is None else scored[..., i].to(m.dtype)
             step_logp, weight = _mix_lapse(
                 torch.where(clipped, tail, interior), clipped, high[i] - low[i], logs
