@@ -63,6 +63,23 @@ def test_a_lapse_outside_zero_to_one_is_refused(lapse, shown):
         Lapse(SPEC, lapse)
 
 
+def test_a_lapse_over_unbounded_actions_is_refused():
+    """A lapse is uniform over the action bounds: an ``Unbounded`` spec (the dtype's extremes)
+    has none, in the simulated agent and in the scored action model alike; lapse 0 is kept."""
+    from torchrl.data import Unbounded
+
+    from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+
+    with pytest.raises(TypeError, match=r"^spec: expected a bounded action spec .* unbounded"):
+        Lapse(Unbounded(shape=(2,)), 0.1)
+    bound = torch.finfo(torch.float32).max * torch.ones(2)
+    with pytest.raises(ValueError, match=r"^lapse: a lapse is uniform over the action bounds"):
+        CensoredGaussianActionModel(torch.nn.Identity(), -bound, bound, lapse=0.05)
+    assert CensoredGaussianActionModel(torch.nn.Identity(), -bound, bound).lapse == 0.0
+    box = torch.ones(2)
+    assert CensoredGaussianActionModel(torch.nn.Identity(), -box, box, lapse=0.05).lapse == 0.05
+
+
 def test_per_agent_rates_that_do_not_fit_the_action_are_refused():
     td = TensorDict({"action": torch.zeros(2, 2)}, [2])
     for shape in ((3, 1), (2, 2, 2)):

@@ -16,7 +16,7 @@ from torchrl.data import Categorical, TensorSpec
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["TaskModel", "action_in_spec"]
+__all__ = ["TaskModel", "action_in_spec", "bounded_box"]
 
 
 class TaskModel(abc.ABC):
@@ -179,3 +179,10 @@ def action_in_spec(spec: TensorSpec, action: torch.Tensor, slack: float = 0.0) -
         margin = slack * (high - low)
         low, high = low - margin, high + margin
     return ((action >= low) & (action <= high)).all(-1)
+
+
+def bounded_box(low: torch.Tensor, high: torch.Tensor) -> bool:
+    """Whether action bounds are a box of their own, not an ``Unbounded`` spec's (the dtype's
+    extremes): a lapse is uniform over the box, which those leave without a usable width."""
+    extreme = torch.finfo(torch.float32).max
+    return bool((low.abs() < extreme).all() and (high.abs() < extreme).all())

@@ -8,6 +8,8 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType, exploration_type
 
+from irc_torchrl.envs.model import bounded_box
+
 __all__ = ["Lapse"]
 
 
@@ -40,6 +42,11 @@ class Lapse(TensorDictModuleBase):
         if not (hasattr(space, "low") and hasattr(space, "high")):
             raise TypeError(f"spec: expected a bounded action spec, got {type(spec).__name__}")
         self.low, self.high = (x.detach().float().cpu() for x in (space.low, space.high))
+        if not bounded_box(self.low, self.high):
+            raise TypeError(
+                "spec: expected a bounded action spec (a lapse is uniform over its bounds), "
+                "got an unbounded one"
+            )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if not self.lapse.any() or exploration_type() not in (ExplorationType.RANDOM, None):

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from irc_torchrl.checks import positive_number
+from irc_torchrl.envs.model import bounded_box
 
 __all__ = [
     "LAPSE_MAX",
@@ -225,6 +226,11 @@ class CensoredGaussianActionModel(nn.Module):
             raise ValueError(
                 f"low, high: expected finite action bounds [da] with low < high, got "
                 f"{self.low.tolist()} and {self.high.tolist()}"
+            )
+        if lapse and not bounded_box(self.low, self.high):
+            raise ValueError(
+                "lapse: a lapse is uniform over the action bounds, and these are an unbounded "
+                "spec's (the dtype's extremes); expected lapse=0 for unbounded actions"
             )
         self.atol = atol
         da = self.low.numel()
