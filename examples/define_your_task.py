@@ -21,7 +21,8 @@ What you write, as :class:`ReachModel` below does:
   ``belief_features`` (what a policy reads, ending with the normalised θ; its arguments'
   batch dimensions broadcast, so expand before concatenating) with ``belief_feature_dim``.
   ``transition_jacobian`` and ``observation_jacobian`` are optional: by default ``torch.func``
-  takes them (exact here, the task being linear);
+  takes them (exact here, the task being linear); so is ``rate_limit``, the fastest speed a
+  recording read by ``read_trials`` may show (by default 10× θ's largest bound in its unit);
 - a policy over the belief features. This one needs no training: with a linear world,
   Gaussian noise and quadratic costs the optimal control acts on the belief mean alone (LQG's
   separation principle), and :class:`LQGController` applies the continuous-time LQR gain of

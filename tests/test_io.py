@@ -856,3 +856,31 @@ def test_a_recording_that_hardly_moves_or_jitters_is_not_taken_for_a_unit_mistak
     _write_raw(still, tmp_path / "still.npz")
     back = read_trials(tmp_path / "still.npz", model2d)
     assert torch.equal(back["mask"].sum(-1), trials2d["mask"].sum(-1))
+
+
+def test_a_tasks_rate_limit_sets_the_speed_check(tmp_path, model2d, trials2d):
+    """A task whose θ does not bound its speeds overrides ``rate_limit``: a lower one refuses
+    the simulated recording's speeds naming it, ``None`` leaves speeds unchecked (a velocity in
+    cm/s is then caught by the kinematic check alone)."""
+
+    class Slow(Firefly2DModel):
+        def rate_limit(self, unit: str) -> float | None:
+            return 0.5 if unit == "distance/s" else super().rate_limit(unit)
+
+    class Unchecked(Firefly2DModel):
+        def rate_limit(self, unit: str) -> float | None:
+            return None
+
+    columns = trials_to_columns(trials2d, model2d)
+    path, fast = tmp_path / "recording.csv", tmp_path / "fast.csv"
+    _write_raw(columns, path)
+    _write_raw(_scale(100.0, "v")(dict(columns)), fast)
+    assert model2d.rate_limit("distance/s") == pytest.approx(16.0)
+    assert read_trials(path, Unchecked())["state"].equal(read_trials(path, model2d)["state"])
+    with pytest.raises(ValueError, match=r"below 0\.5 distance/s \(the task's rate_limit\)"):
+        read_trials(path, Slow())
+    with pytest.raises(ValueError, match=r"field 'v': .* expected below 16 distance/s"):
+        read_trials(fast, model2d)
+    with pytest.raises(ValueError, match=r"'x'/'y': each step moves 0\.01× as far") as caught:
+        read_trials(fast, Unchecked())
+    assert "expected below" not in str(caught.value)

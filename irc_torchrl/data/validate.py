@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical
 
-from irc_torchrl.envs.model import TaskModel, action_in_spec
+from irc_torchrl.envs.model import ABSURD, TaskModel, action_in_spec
 
 __all__ = [
     "ABSURD",
@@ -31,8 +31,6 @@ __all__ = [
     "split_trials",
 ]
 
-#: a speed this many times the largest gain of its unit in the θ space is taken as a unit mistake
-ABSURD = 10.0
 #: columns ``theta.<name>`` give the task's θ per trial
 THETA_PREFIX = "theta."
 
@@ -201,14 +199,6 @@ def _check_actions(where: str, trial: Trial, model: TaskModel, time: np.ndarray)
         )
 
 
-def _limit(model: TaskModel, unit: str) -> float | None:
-    """``ABSURD`` times the largest θ bound in ``unit`` (per-step gains counted per second)."""
-    per_step = unit.replace("/s", "/step")
-    highs = [p.high for p in model.theta_space.parameters if p.unit == unit]
-    highs += [p.high / model.dt for p in model.theta_space.parameters if p.unit == per_step]
-    return ABSURD * max(highs) if highs else None
-
-
 def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) -> None:
     """Velocities, displacements and heading changes within reach of the θ space."""
     units = dict(zip(model.state_names, model.state_units, strict=True))
@@ -223,14 +213,14 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
         speed = np.linalg.norm(np.diff(xy, axis=0), axis=-1) / dt
         rates.append(("/".join(positions), speed, time[1:], "distance/s", "distance"))
     for name, rate, at, unit, field_unit in rates:
-        limit = _limit(model, unit)
+        limit = model.rate_limit(unit)
         if limit is not None and (rate > limit).any():
             i = int(np.flatnonzero(rate > limit)[0])
             kind = "the speed between samples of " if field_unit == "distance" else ""
             hint = _LIKELY_MISTAKE[field_unit]
             raise ValueError(
                 f"{where}, field {name!r}: {kind}{rate[i]:.6g} {unit} at time {at[i]:.6g} s; "
-                f"expected below {limit:.6g} {unit} ({ABSURD:g}× the θ space's fastest). "
+                f"expected below {limit:.6g} {unit} (the task's rate_limit). "
                 f"A unit mistake? Declare it: units.{name.split('/')[0]}={hint} (irc fit) or "
                 f"units={{{name.split('/')[0]!r}: {hint!r}}} (read_trials), or similar"
             )

@@ -16,7 +16,11 @@ from torchrl.data import Categorical, TensorSpec
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["TaskModel", "action_in_spec", "bounded_box"]
+__all__ = ["ABSURD", "TaskModel", "action_in_spec", "bounded_box"]
+
+#: a recorded rate this many times the largest gain of its unit in the θ space is taken as a
+#: unit mistake (:meth:`TaskModel.rate_limit`'s default)
+ABSURD = 10.0
 
 
 class TaskModel(abc.ABC):
@@ -139,6 +143,19 @@ class TaskModel(abc.ABC):
         """How many leading entries of :meth:`belief_features` describe the belief."""
 
     # --- Jacobians (override with analytic forms; tests check them against torch.func) ---
+    def rate_limit(self, unit: str) -> float | None:
+        """The fastest rate in ``unit`` (``"distance/s"``, ``"rad/s"``) a recording of this task
+        may show before the readers take it for a unit mistake (``None``: not checked).
+
+        By default :data:`ABSURD` times the largest θ bound in ``unit`` (a gain: the top speed),
+        per-step units counted per second. Override it where θ does not bound the task's speeds
+        so (its only parameter in ``distance/s`` a noise, say).
+        """
+        per_step = unit.replace("/s", "/step")
+        highs = [p.high for p in self.theta_space.parameters if p.unit == unit]
+        highs += [p.high / self.dt for p in self.theta_space.parameters if p.unit == per_step]
+        return ABSURD * max(highs) if highs else None
+
     def transition_jacobian(
         self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
     ) -> torch.Tensor:
