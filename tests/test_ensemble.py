@@ -631,6 +631,11 @@ def recorded(tmp_path_factory):
         log["loss"].append(loss)
         return soft_update(loss, **kwargs)
 
+    def stepped(optimiser, args, kwargs):
+        grads = [p.grad for group in optimiser.param_groups for p in group["params"]]
+        norm = torch.stack([g.norm() for g in grads if g is not None]).norm().item()
+        log["steps"].append(norm)
+
     config = tiny(
         *("ddpg.clone_updates=0", "ddpg.critic_updates=0", "ddpg.pre_activation_weight=0"),
         *("ddpg.bc_weight=8", "ddpg.bc_updates=4", "ddpg.anneal_frames=2560", "ddpg.gamma=0.9"),
@@ -784,11 +789,14 @@ def test_the_smoothness_term_jitters_each_belief_mean_by_independent_gaussian_no
 def clipped():
     """A tiny run with no cloning whose gradient clip lies far below its gradients' norms, and
     what it did recorded: each call of ``clip_grad_norm_`` (the parameters it was given, their
-    gradient's norm before and after it, the bound), the weight of the pre-activation penalty
-    at each update (the gradient of the total loss by the penalty) and the loss module."""
+    gradient's norm before and after it, the bound), the gradient norm each optimiser step
+    reads, the weight of the pre-activation penalty at each update (the gradient of the total
+    loss by the penalty) and the loss module."""
+    from torch.optim.optimizer import register_optimizer_step_pre_hook
+
     from irc_torchrl.algorithms import ensemble
 
-    log = {"clips": [], "penalty_weights": [], "loss": []}
+    log = {"clips": [], "steps": [], "penalty_weights": [], "loss": []}
     clip, penalty, soft_update = (
         torch.nn.utils.clip_grad_norm_,
         ensemble._pre_activation_penalty,
@@ -812,6 +820,11 @@ def clipped():
         log["loss"].append(loss)
         return soft_update(loss, **kwargs)
 
+    def stepped(optimiser, args, kwargs):
+        grads = [p.grad for group in optimiser.param_groups for p in group["params"]]
+        norm = torch.stack([g.norm() for g in grads if g is not None]).norm().item()
+        log["steps"].append(norm)
+
     config = tiny(
         *("ddpg.clone_updates=0", "ddpg.critic_updates=0", "ddpg.total_frames=640"),
         *("ddpg.max_grad_norm=0.001", "ddpg.pre_activation_weight=0.25"),
@@ -820,13 +833,18 @@ def clipped():
         patch.setattr(torch.nn.utils, "clip_grad_norm_", clip_norm)
         patch.setattr(ensemble, "_pre_activation_penalty", pre_activation)
         patch.setattr(ensemble, "SoftUpdate", targets)
-        result = train_ensemble(config, progress=False, seed=5)
+        hook = register_optimizer_step_pre_hook(stepped)
+        try:
+            result = train_ensemble(config, progress=False, seed=5)
+        finally:
+            hook.remove()
     return result, log
 
 
 def test_each_networks_gradient_is_clipped_to_max_grad_norm_before_every_update(clipped):
     """The actor's and the critic's gradients are each clipped on their own, at every update,
-    to a norm of at most ``max_grad_norm`` (here beyond it before: the clip acts)."""
+    to a norm of at most ``max_grad_norm`` (here beyond it before: the clip acts), before the
+    optimisers step on them."""
     result, log = clipped
     loss = log["loss"][0]
     actor = {id(p) for p in loss.actor_network_params.values(True, True)}
@@ -839,6 +857,9 @@ def test_each_networks_gradient_is_clipped_to_max_grad_norm_before_every_update(
         assert max_norm == 0.001
         assert before > 10 * max_norm, (named[frozenset(params)], before)
         assert after == pytest.approx(max_norm, rel=1e-3), (named[frozenset(params)], after)
+    # and the optimisers step on the clipped gradients
+    assert len(log["steps"]) == 2 * result.updates
+    assert max(log["steps"]) <= 0.001 * (1 + 1e-3), max(log["steps"])
 
 
 def test_the_pre_activation_penalty_enters_the_actors_loss_at_its_weight(clipped):

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -109,7 +110,8 @@ def test_define_your_task_fits_an_own_task_family_by_both_estimators(tmp_path):
     returns = results["returns"]
     assert returns["controller"]["return"] > returns["random"]["return"] + 1
     assert returns["controller"]["final_distance"] < 0.1 < returns["random"]["final_distance"]
-    ranges = {"g": 1.5, "obs_sigma": 0.29, "effort_cost": 0.48}  # the prior ranges' widths
+    space = _load_example("define_your_task").reach_theta_space()
+    ranges = {name: space[name].high - space[name].low for name in space.free_names}
     for method, share in (("marginal", 0.1), ("map", 0.2)):
         fitted = results[method]
         assert len(fitted["agents"]) == len(results["theta_true"]) == 3
@@ -169,3 +171,31 @@ def test_define_your_task_model_passes_the_librarys_checks():
     target, step = torch.zeros(2, 3, 1, 1), torch.arange(5).view(1, 1, 5, 1)
     features = model.belief_features(mean, cov, target, step, theta[:6].view(2, 3, 1, 4))
     assert features.shape == (2, 3, 5, model.belief_feature_dim + model.theta_space.dim)
+
+
+def test_define_your_task_controller_applies_the_lqr_gain_of_the_agents_own_theta():
+    """The example's controller is the continuous-time LQR gain of ``ẍ = g a`` under the cost
+    ``e² + c a²`` (the Riccati equation solved by scipy) at the agent's own g and c, read from
+    the θ at the end of its belief features."""
+    from scipy.linalg import solve_continuous_are
+
+    example = _load_example("define_your_task")
+    model = example.ReachModel()
+    controller = example.LQGController(model)
+    state = torch.tensor([[0.3, -0.2], [-0.5, 0.4]], dtype=torch.float64)
+    target = torch.tensor([[0.1], [0.2]], dtype=torch.float64)
+    cov = 0.01 * torch.eye(2, dtype=torch.float64).expand(2, 2, 2)
+    for gain, cost in ((1.0, 0.1), (1.3, 0.05), (0.8, 0.2), (1.6, 0.3)):
+        theta = model.theta_space.from_dict({"g": gain, "effort_cost": cost}).double()
+        features = model.belief_features(
+            state, cov, target, torch.zeros(2, 1), theta.expand(2, -1)
+        )
+        riccati = solve_continuous_are(
+            np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [gain]]), np.diag([1.0, 0.0]),
+            np.array([[cost]]),
+        )  # fmt: skip
+        lqr = np.array([[0.0, gain]]) @ riccati / cost
+        error = torch.cat([state[:, :1] - target, state[:, 1:]], -1).numpy()
+        expected = -error @ lqr.T
+        np.testing.assert_allclose(controller(features).detach().numpy(), expected, rtol=1e-6)
+

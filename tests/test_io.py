@@ -877,7 +877,7 @@ def test_a_tasks_rate_limit_sets_the_speed_check(tmp_path, model2d, trials2d):
     _write_raw(_scale(100.0, "v")(dict(columns)), fast)
     assert model2d.rate_limit("distance/s") == pytest.approx(16.0)
     assert read_trials(path, Unchecked())["state"].equal(read_trials(path, model2d)["state"])
-    with pytest.raises(ValueError, match=r"below 0\.5 distance/s \(the task's rate_limit\)"):
+    with pytest.raises(ValueError, match=r"below 0\.5 distance/s \(the task's rate_limit: "):
         read_trials(path, Slow())
     with pytest.raises(ValueError, match=r"field 'v': .* expected below 16 distance/s"):
         read_trials(fast, model2d)

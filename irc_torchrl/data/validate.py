@@ -220,7 +220,8 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
             hint = _LIKELY_MISTAKE[field_unit]
             raise ValueError(
                 f"{where}, field {name!r}: {kind}{rate[i]:.6g} {unit} at time {at[i]:.6g} s; "
-                f"expected below {limit:.6g} {unit} (the task's rate_limit). "
+                f"expected below {limit:.6g} {unit} (the task's rate_limit: by default "
+                f"{ABSURD:g}× the θ space's fastest). "
                 f"A unit mistake? Declare it: units.{name.split('/')[0]}={hint} (irc fit) or "
                 f"units={{{name.split('/')[0]!r}: {hint!r}}} (read_trials), or similar"
             )

@@ -142,7 +142,7 @@ class TaskModel(abc.ABC):
     def belief_feature_dim(self) -> int:
         """How many leading entries of :meth:`belief_features` describe the belief."""
 
-    # --- Jacobians (override with analytic forms; tests check them against torch.func) ---
+    # --- recordings ----------------------------------------------------------------------
     def rate_limit(self, unit: str) -> float | None:
         """The fastest rate in ``unit`` (``"distance/s"``, ``"rad/s"``) a recording of this task
         may show before the readers take it for a unit mistake (``None``: not checked).
@@ -156,6 +156,7 @@ class TaskModel(abc.ABC):
         highs += [p.high / self.dt for p in self.theta_space.parameters if p.unit == per_step]
         return ABSURD * max(highs) if highs else None
 
+    # --- Jacobians (override with analytic forms; tests check them against torch.func) ---
     def transition_jacobian(
         self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
     ) -> torch.Tensor:
