@@ -121,6 +121,24 @@ def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
             fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1, **kwargs)
 
 
+def test_the_hard_e_step_refuses_belief_features_that_do_not_broadcast(shipped):
+    """A task of one's own whose features concatenate their arguments as given works in the env
+    and in marginal, and failed in map's first pass with a bare size error: refused up front."""
+    actor, model = shipped
+
+    class Concatenating(Firefly2DModel):
+        def belief_features(self, mean, cov, target, step, theta):
+            features = super().belief_features(mean, cov, target, step, theta)
+            return torch.cat([features[..., :1], theta], -1)  # θ not expanded to the steps
+
+    own = Concatenating()
+    action_model = censored_action_model(actor, model)
+    with pytest.raises(ValueError, match=r"^model\.belief_features: expected features \[1, 1, 2,"):
+        InverseRationalLoss(own, action_model, method="map")
+    InverseRationalLoss(own, action_model, method="marginal")
+    InverseRationalLoss(model, action_model, method="map")
+
+
 def test_pivots_take_one_truth_per_fitted_agent(shipped, two_agents):
     """A one-row truth was broadcast over every agent's interval."""
     actor, model = shipped

@@ -105,6 +105,8 @@ class InverseRationalLoss(LossModule):
         self.method = method
         self.moments = moments
         check_mixture(model, components, final_steps)
+        if method == "map":
+            _check_broadcast_features(model)
         self.components, self.final_steps = components, final_steps
         self.model = model
         self.action_model = action_model
@@ -406,4 +408,27 @@ class InverseRationalLoss(LossModule):
         log_likelihood = self.log_likelihood(theta, self.nuisance, tensordict)
         return TensorDict(
             loss_nll=-log_likelihood.sum(), log_likelihood=log_likelihood.detach(), batch_size=[]
+        )
+
+
+def _check_broadcast_features(model: TaskModel) -> None:
+    """Refuse, before any work, a task whose ``belief_features`` needs its arguments' batch
+    shapes to match: the hard E-step passes beliefs per step beside each trial's target and θ."""
+    space = model.theta_space
+    ds, steps = model.state_dim, 2
+    mean = torch.zeros(1, 1, steps, ds)
+    cov = torch.eye(ds).expand(1, 1, steps, ds, ds)
+    target = torch.zeros(1, 1, 1, model.target_dim)
+    step = torch.arange(steps).view(1, 1, steps, 1)
+    theta = space.default().view(1, 1, 1, -1)
+    expected = (1, 1, steps, model.belief_feature_dim + space.dim)
+    try:
+        shape = tuple(model.belief_features(mean, cov, target, step, theta).shape)
+    except RuntimeError as error:
+        shape = f"an error ({error})"
+    if shape != expected:
+        raise ValueError(
+            f"model.belief_features: expected features {list(expected)} from beliefs "
+            f"[1, 1, {steps}, {ds}] beside a target and θ [1, 1, 1, ·] and steps "
+            f"[1, 1, {steps}, 1] (batch dimensions that broadcast), got {shape}"
         )
