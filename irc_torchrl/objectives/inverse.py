@@ -416,10 +416,11 @@ def _check_broadcast_features(model: TaskModel) -> None:
     shapes to match: the hard E-step passes beliefs per step beside each trial's target and θ."""
     space = model.theta_space
     ds, steps = model.state_dim, 2
-    mean = torch.zeros(1, 1, steps, ds)
-    cov = torch.eye(ds).expand(1, 1, steps, ds, ds)
-    target = torch.zeros(1, 1, 1, model.target_dim)
-    step = torch.arange(steps).view(1, 1, steps, 1)
+    cpu = torch.device("cpu")  # where θ's default lives, whatever the default device
+    mean = torch.zeros(1, 1, steps, ds, device=cpu)
+    cov = torch.eye(ds, device=cpu).expand(1, 1, steps, ds, ds)
+    target = torch.zeros(1, 1, 1, model.target_dim, device=cpu)
+    step = torch.arange(steps, device=cpu).view(1, 1, steps, 1)
     theta = space.default().view(1, 1, 1, -1)
     expected = (1, 1, steps, model.belief_feature_dim + space.dim)
     try:
