@@ -422,14 +422,14 @@ def _check_broadcast_features(model: TaskModel) -> None:
     target = torch.zeros(1, 1, 1, model.target_dim, device=cpu)
     step = torch.arange(steps, device=cpu).view(1, 1, steps, 1)
     theta = space.default().view(1, 1, 1, -1)
-    expected = (1, 1, steps, model.belief_feature_dim + space.dim)
+    expected = [1, 1, steps, model.belief_feature_dim + space.dim]
     try:
-        shape = tuple(model.belief_features(mean, cov, target, step, theta).shape)
+        shape = list(model.belief_features(mean, cov, target, step, theta).shape)
     except RuntimeError as error:
         shape = f"an error ({error})"
     if shape != expected:
         raise ValueError(
-            f"model.belief_features: expected features {list(expected)} from beliefs "
+            f"model.belief_features: expected features {expected} from beliefs "
             f"[1, 1, {steps}, {ds}] beside a target and θ [1, 1, 1, ·] and steps "
             f"[1, 1, {steps}, 1] (batch dimensions that broadcast), got {shape}"
         )
