@@ -631,11 +631,6 @@ def recorded(tmp_path_factory):
         log["loss"].append(loss)
         return soft_update(loss, **kwargs)
 
-    def stepped(optimiser, args, kwargs):
-        grads = [p.grad for group in optimiser.param_groups for p in group["params"]]
-        norm = torch.stack([g.norm() for g in grads if g is not None]).norm().item()
-        log["steps"].append(norm)
-
     config = tiny(
         *("ddpg.clone_updates=0", "ddpg.critic_updates=0", "ddpg.pre_activation_weight=0"),
         *("ddpg.bc_weight=8", "ddpg.bc_updates=4", "ddpg.anneal_frames=2560", "ddpg.gamma=0.9"),
