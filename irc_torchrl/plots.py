@@ -331,23 +331,27 @@ def plot_training(
     """Training curves of ``irc train``: evaluation success and return, and the DDPG losses.
 
     ``history`` is ``summary.json``'s list of evaluations; ``losses`` maps a logged name to
-    ``[n, 2]`` rows of (frames, value), as the CSV logger writes them under ``logs/``.
+    ``[n, 2]`` rows of (frames, value), as the CSV logger writes them under ``logs/``. A task
+    without success (its rates None) gets the return alone.
     """
     frames = [row["frames"] for row in history]
-    panels = 2 + bool(losses)
+    success = all(row.get("success_rate") is not None for row in history)
+    panels = success + 1 + bool(losses)
     fig, axes = plt.subplots(1, panels, figsize=(4 * panels, 3.3), squeeze=False)
-    ax = axes[0][0]
-    ax.plot(frames, [row["success_rate"] for row in history], "o-", ms=3)
-    ax.set_ylim(0, 1)
-    ax.set_xlabel("environment frames")
-    ax.set_ylabel("success rate (fraction of trials)")
-    ax.set_title("greedy policy on the θ grid", fontsize=9)
-    ax = axes[0][1]
+    axes = list(axes[0])
+    if success:
+        ax = axes.pop(0)
+        ax.plot(frames, [row["success_rate"] for row in history], "o-", ms=3)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel("environment frames")
+        ax.set_ylabel("success rate (fraction of trials)")
+    ax = axes.pop(0)
     ax.plot(frames, [row["mean_return"] for row in history], "o-", ms=3)
     ax.set_xlabel("environment frames")
     ax.set_ylabel("mean return (reward units)")
+    fig.axes[0].set_title("greedy policy on the θ grid", fontsize=9)
     if losses:
-        ax = axes[0][2]
+        ax = axes.pop(0)
         meaning = {"loss_value": "TD error², reward²", "loss_actor": "−Q, reward units"}
         for name, rows in sorted(losses.items()):
             label = f"{name} ({meaning[name]})" if name in meaning else name

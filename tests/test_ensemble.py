@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import statistics
 from pathlib import Path
 
 import pytest
@@ -11,9 +12,12 @@ import torch
 import yaml
 from tensordict import TensorDict
 from test_checkpoint import tiny
+from test_examples import _load_example
+from torchrl.data import Unbounded
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from irc_torchrl.algorithms.ensemble import (
+    EvaluationConfig,
     Firefly2DConfig,
     _clone_loss,
     _policy_report,
@@ -34,6 +38,7 @@ from irc_torchrl.algorithms.ensemble import (
 from irc_torchrl.checkpoint import load_checkpoint
 from irc_torchrl.config import config_to_dict, load_firefly2d_config
 from irc_torchrl.envs.belief import BELIEF_MEAN
+from irc_torchrl.envs.firefly1d import Firefly1DModel
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import make_actor, make_critic
 from irc_torchrl.modules.pursuit import BeliefPursuit
@@ -888,3 +893,157 @@ def test_the_clones_target_is_the_teachers_action_held_off_the_bounds_at_097():
     teacher = TensorDictModule(lambda its: its, ["its"], ["action"])
     distance = _clone_loss(actor, teacher, batch).item()
     assert distance == pytest.approx((0.97**2 + 0.97**2 + 0 + 0.2**2) / 4, rel=1e-6), distance
+
+
+# --- a task of the user's own --------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def reach():
+    return _load_example("define_your_task")
+
+
+def _own(reach) -> Firefly2DConfig:
+    """The example's settings for a short run (one thread, about 15 s): 40k frames at a faster
+    actor learning rate, a smaller evaluation grid, a checkpoint every 250 updates."""
+    config = reach.ensemble_config(40_960, seed=0)
+    config.ddpg.lr_actor = 1e-3
+    config.evaluation = EvaluationConfig(n_theta=8, trials_per_theta=4, every=250)
+    config.checkpoint_every = 250
+    return config
+
+
+@pytest.fixture(scope="module")
+def own_task(reach, tmp_path_factory):
+    out = tmp_path_factory.mktemp("own_task")
+    return train_ensemble(_own(reach), out=out, progress=False, model=reach.ReachModel()), out
+
+
+def test_an_own_task_trains_towards_its_optimal_controller(reach, own_task):
+    """Algorithm 1 learns the example's task from a random warm-up: on 16 θ of the prior the
+    kept actor's cost is on average within 3× the LQG controller's (measured 1.59×; 1.23× after
+    the example's 200k frames), against over 20× (measured 104×) for the same actor untrained."""
+    result, _ = own_task
+    model = result.model
+    trained = reach.compare_with_controller(model, result.actor, seed=0)
+    torch.manual_seed(0)
+    untrained = make_actor(model, result.config.ddpg.hidden, result.config.ddpg.activation)
+    first = reach.compare_with_controller(model, untrained, seed=0)
+    assert statistics.mean(trained["cost_ratio"]) < 3
+    assert statistics.mean(first["cost_ratio"]) > 20
+    assert trained["mean_cost"]["controller"] == first["mean_cost"]["controller"]  # same trials
+
+
+def test_agents_acting_by_an_own_tasks_learned_policy_are_fitted_with_it(reach, own_task):
+    """Algorithm 2 with the learned policy of the user's task (the example's three agents, 20
+    trials each, seed 0): marginal's likelihood at θ* is a particle filter's to 2 nats per agent
+    (measured within 0.4), map's at least 10 below (measured 24-36), and marginal recovers the
+    observation noises within 0.02 (measured within 0.01) and the motor noise within 0.015
+    (measured within 0.004), which map inflates."""
+    result, _ = own_task
+    fits = reach.fit_learned(result.model, result.actor, 20, seed=0)
+    marginal, map_ = fits["marginal"], fits["map"]
+    assert all(abs(gap) < 2 for gap in marginal["gap_at_truth"])
+    assert all(gap < -10 for gap in map_["gap_at_truth"])
+    for truth, agent in zip(reach.TRUE_THETA, marginal["agents"], strict=True):
+        assert abs(agent["theta_hat"]["obs_sigma"] - truth["obs_sigma"]) < 0.02
+    assert all(abs(noise - reach.MOTOR_NOISE) < 0.015 for noise in marginal["motor_noise"])
+    assert all(m > n for m, n in zip(map_["motor_noise"], marginal["motor_noise"], strict=True))
+
+
+def test_an_own_tasks_checkpoint_carries_its_name_and_loads_only_with_its_model(reach, own_task):
+    """The checkpoint, summary and config name the model's task; the kept actor reloads with
+    the model, and neither the firefly loader nor a model of another θ space takes it."""
+    result, out = own_task
+    path = out / "checkpoint.pt"
+    assert load_checkpoint(path)["task"] == "reach_and_hold" == result.config.task
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["task"] == "reach_and_hold"
+    assert set(summary["theta_sensitivity"]) == {"g", "obs_sigma", "effort_cost"}
+    assert "stop_sharpness" not in summary  # the firefly's forward control has no meaning here
+    assert yaml.safe_load((out / "config.yaml").read_text())["task"] == "reach_and_hold"
+    actor, model, _ = load_ensemble_policy(path, model=result.model)
+    for name, value in result.actor.state_dict().items():
+        assert torch.equal(actor.state_dict()[name], value)
+    critic, _, _ = load_ensemble_critic(path, model=result.model)
+    assert critic(result.actor(_reach_beliefs(model)))["state_action_value"].shape == (3, 1)
+    with pytest.raises(ValueError, match="task is 'reach_and_hold', expected 'firefly2d'"):
+        load_ensemble_policy(path)
+
+    class Narrower(reach.ReachModel):
+        theta_space = reach.reach_theta_space().fix(effort_cost=0.1)
+
+    with pytest.raises(ValueError, match="theta_space does not match the model's θ space"):
+        load_ensemble_policy(path, model=Narrower())
+
+
+def _reach_beliefs(model) -> TensorDict:
+    """Three agents' beliefs at the start of a trial of the reach task."""
+    state = torch.zeros(3, 2)
+    target = torch.tensor([[-0.5], [0.2], [0.9]])
+    theta = model.theta_space.default().expand(3, -1)
+    mean, cov = model.initial_belief(state, target, theta)
+    step = torch.zeros(3, 1, dtype=torch.int64)
+    return TensorDict(
+        {"belief": {"mean": mean, "cov": cov}, "target": target, "step": step, "theta": theta},
+        batch_size=[3],
+    )
+
+
+def test_an_own_task_without_success_is_evaluated_and_logged_by_its_return(own_task):
+    """The task defines no success: every evaluation has its return and no success rate, and
+    the CSV logger writes the return but no success rate."""
+    result, out = own_task
+    assert result.history and all(row["success_rate"] is None for row in result.history)
+    assert all(math.isfinite(row["mean_return"]) for row in result.history)
+    assert result.best["per_theta_success"] is None
+    assert len(result.best["per_theta_return"]) == result.config.evaluation.n_theta
+    logged = {p.stem for p in out.glob("logs/*/scalars/*.csv")}
+    assert "mean_return" in logged and "success_rate" not in logged
+
+
+def test_an_own_task_resumes_from_its_checkpoint(reach, own_task, tmp_path):
+    """Resumed with its model, a run continues the checkpoint's counters (and refuses the
+    firefly task's model)."""
+    result, out = own_task
+    longer = result.config
+    longer.ddpg.total_frames += 4096  # the buffer refills with 2048 frames before updating
+    resumed = train_ensemble(
+        longer, resume=out / "checkpoint.pt", progress=False, model=result.model
+    )
+    assert resumed.frames > result.frames and resumed.updates > result.updates
+    with pytest.raises(ValueError, match="task is 'reach_and_hold', expected 'firefly2d'"):
+        train_ensemble(tiny(), resume=out / "checkpoint.pt", progress=False)
+
+
+def _unbounded() -> Firefly2DModel:
+    model = Firefly2DModel()
+    model.action_spec = Unbounded(shape=(2,), dtype=torch.float32)
+    return model
+
+
+@pytest.mark.parametrize(
+    "change, model, message",
+    [
+        ({"warmup_policy": "pursuit"}, "reach", "ddpg.warmup_policy='pursuit' runs the firefly2d"),
+        (
+            {"theta_fixed": {"g": 1.0}},
+            "reach",
+            "theta_fixed names the firefly2d task's parameters; for task 'reach_and_hold'",
+        ),
+        ({}, Firefly1DModel, "model.action_spec: expected a bounded box of continuous"),
+        ({}, _unbounded, "model.action_spec: expected a bounded box of continuous"),
+        ({}, lambda: "not a model", "model: expected a TaskModel, got str"),
+    ],
+)
+def test_an_own_task_the_trainer_cannot_train_is_refused_before_any_work(
+    reach, change, model, message, monkeypatch
+):
+    from irc_torchrl.algorithms import ensemble
+
+    monkeypatch.setattr(ensemble, "_train", lambda *a: pytest.fail("trained"))
+    config = reach.ensemble_config(1024, seed=0)
+    config.theta_fixed = change.get("theta_fixed", {})
+    config.ddpg.warmup_policy = change.get("warmup_policy", "random")
+    model = reach.ReachModel() if model == "reach" else model()
+    with pytest.raises(ValueError, match=message):
+        train_ensemble(config, progress=False, model=model)

@@ -282,6 +282,17 @@ def test_training_curves_plot_each_evaluation_and_logged_loss(drawn):
     np.testing.assert_array_equal(lines["loss_other"].get_xydata(), [[1.0, 1.0]])
 
 
+def test_training_curves_of_a_task_without_success_plot_its_return_alone(drawn):
+    history = [
+        {"frames": 100, "success_rate": None, "mean_return": -9.0},
+        {"frames": 300, "success_rate": None, "mean_return": -0.5},
+    ]
+    plots.plot_training(history, {}, "train.png")
+    (returns,) = drawn[0].axes
+    np.testing.assert_array_equal(returns.lines[0].get_xydata(), [[100, -9.0], [300, -0.5]])
+    assert returns.get_ylabel() == "mean return (reward units)"
+
+
 def test_dp_comparison_scatters_learned_against_optimal_with_the_95_percent_line(drawn):
     dp, learned = np.array([2.0, 4.0, 5.0]), np.array([1.0, 3.9, 5.0])
     plots.plot_dp_comparison(dp, learned, ["θ0", "θ1", "θ2"], "dp.png")

@@ -1,7 +1,8 @@
 """Algorithm 1 on continuous-action tasks: one θ-conditioned DDPG policy over the whole θ prior.
 
-A TorchRL ``Collector`` steps a batched :class:`~irc_torchrl.envs.firefly2d.Firefly2DEnv` whose
-every element draws its θ from the prior at each trial; :class:`EKFBelief` keeps the agent's
+A TorchRL ``Collector`` steps a batched :class:`~irc_torchrl.envs.task_env.TaskEnv` (the 2D
+firefly task by default, or any continuous-action task of the user's own) whose every element
+draws its θ from the prior at each trial; :class:`EKFBelief` keeps the agent's
 belief under that θ and :class:`BeliefReward` pays the reward the agent expects under its
 belief (the paper's ``R_θ(b, a)``). Transitions go to a ``TensorDictReplayBuffer``;
 ``DDPGLoss`` (TD(0) targets, target networks moved by ``SoftUpdate``) trains an actor and a
@@ -11,6 +12,11 @@ the best policy by evaluation is kept (learning curves are not monotone).
 
 A *specialist* is the same algorithm over a θ space with every parameter fixed
 (``theta_fixed``): the premise of the method is that the ensemble matches it.
+
+A task of the user's own (``train_ensemble(model=...)``) trains the same way from a uniform
+random warm-up (the pursuit controller that seeds the firefly's buffer knows that task only);
+its evaluations score the world's return, and the success rate where the task defines one
+(:meth:`~irc_torchrl.envs.model.TaskModel.succeeded`).
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import yaml
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import Categorical, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, MultiStepTransform, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule
@@ -44,7 +50,9 @@ from irc_torchrl.checks import positive as check_positive
 from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
-from irc_torchrl.envs.firefly2d import Firefly2DEnv, Firefly2DModel, firefly2d_theta_space
+from irc_torchrl.envs.firefly2d import Firefly2DModel, firefly2d_theta_space
+from irc_torchrl.envs.model import TaskModel, bounded_box
+from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.modules.actor_critic import ACTIVATIONS, make_actor, make_critic
 from irc_torchrl.modules.pursuit import BeliefPursuit
 from irc_torchrl.theta import ThetaSpace
@@ -213,12 +221,16 @@ class Firefly2DConfig:
     ddpg: DDPGConfig = field(default_factory=DDPGConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
 
-    def validate(self) -> Firefly2DConfig:
-        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+    def validate(self, model: TaskModel | None = None) -> Firefly2DConfig:
+        """Return ``self`` if every field is usable, else raise a one-line error naming it.
+
+        ``model`` is the task of the user's own the config trains (``None``: the 2D firefly).
+        """
         check_fields(self)
         d, e = self.ddpg, self.evaluation
-        if self.task != TASK:
-            raise ValueError(f"config: task must be {TASK!r}, got {self.task!r}")
+        task = TASK if model is None else model.name
+        if self.task != task:
+            raise ValueError(f"config: task must be {task!r}, got {self.task!r}")
         positive = {
             "threads": self.threads,
             "checkpoint_every": self.checkpoint_every,
@@ -322,8 +334,39 @@ class Firefly2DConfig:
             raise ValueError(
                 f"config: logger must be 'csv', 'tensorboard' or 'none', got {self.logger!r}"
             )
-        make_model(self)  # theta_fixed: unknown names and out-of-range values
+        if model is None:
+            make_model(self)  # theta_fixed: unknown names and out-of-range values
+        else:
+            _check_own_task(self, model)
         return self
+
+
+def _check_own_task(config: Firefly2DConfig, model: TaskModel) -> None:
+    """Refuse the settings a task of the user's own cannot train with, and tasks DDPG cannot."""
+    if config.theta_fixed:
+        raise ValueError(
+            f"config: theta_fixed names the firefly2d task's parameters; for task "
+            f"{model.name!r} fix them in its θ space (ThetaSpace(..., fixed=...)), "
+            f"got {config.theta_fixed}"
+        )
+    if config.ddpg.warmup_policy != "random":
+        raise ValueError(
+            f"config: ddpg.warmup_policy={config.ddpg.warmup_policy!r} runs the firefly2d "
+            f"task's pursuit controller; expected 'random' for task {model.name!r}"
+        )
+    spec = model.action_spec
+    if isinstance(spec, Categorical) or not bounded_box(spec.space.low, spec.space.high):
+        raise ValueError(
+            f"model.action_spec: expected a bounded box of continuous actions (the actor "
+            f"squashes into it), got {type(spec).__name__} of {spec.dtype}"
+        )
+
+
+def _check_model(model: Any) -> TaskModel | None:
+    """``model`` if it is a task model or None, else a one-line refusal."""
+    if model is not None and not isinstance(model, TaskModel):
+        raise ValueError(f"model: expected a TaskModel, got {type(model).__name__}")
+    return model
 
 
 def config_from_dict(data: Mapping[str, Any]) -> Firefly2DConfig:
@@ -349,10 +392,10 @@ def make_model(config: Firefly2DConfig) -> Firefly2DModel:
 
 
 def make_train_env(
-    model: Firefly2DModel, n_envs: int, seed: int, device: torch.device | str = "cpu"
+    model: TaskModel, n_envs: int, seed: int, device: torch.device | str = "cpu"
 ) -> EnvBase:
     """The training world: θ from the prior per trial, the EKF belief, the belief reward."""
-    env = Firefly2DEnv(model=model, batch_size=(n_envs,), seed=seed, device=device)
+    env = TaskEnv(model=model, batch_size=(n_envs,), seed=seed, device=device)
     return TransformedEnv(env, Compose(EKFBelief(model), BeliefReward(model)))
 
 
@@ -377,7 +420,7 @@ def theta_grid(space: ThetaSpace, n: int, seed: int) -> torch.Tensor:
 
 @torch.no_grad()
 def evaluate_policy(
-    model: Firefly2DModel,
+    model: TaskModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
     thetas: torch.Tensor,
     trials_per_theta: int = 8,
@@ -393,31 +436,34 @@ def evaluate_policy(
 
     Returns:
         ``success_rate``, ``mean_return``, ``mean_length`` (steps), and per θ
-        ``per_theta_success`` and ``per_theta_return`` (lists, in the order of ``thetas``).
+        ``per_theta_success`` and ``per_theta_return`` (lists, in the order of ``thetas``);
+        both success entries are None for a task without success
+        (:meth:`~irc_torchrl.envs.model.TaskModel.succeeded`).
     """
     rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
     batch = rollout.shape[0]
     last = alive.sum(-1) - 1
     returns = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1)
     end = rollout[torch.arange(batch, device=last.device), last]
-    space = model.theta_space
-    radius = end["task_theta"][..., space.index("goal_radius")]
-    inside = (end["state"][..., :2] - end["target"]).norm(dim=-1) < radius
-    success = (model.stops(end["action"], end["step"]).squeeze(-1) & inside).float()
+    stop = model.stops(end["action"], end["step"])
+    success = model.succeeded(end["state"], end["target"], stop, end["task_theta"])
     n_theta = thetas.shape[0]
-    per_theta = success.reshape(n_theta, trials_per_theta).mean(-1)
+    if success is not None:
+        success = success.squeeze(-1).float()
     return {
-        "success_rate": float(success.mean()),
+        "success_rate": None if success is None else float(success.mean()),
         "mean_return": float(returns.mean()),
         "mean_length": float((last + 1).float().mean()),
-        "per_theta_success": per_theta.tolist(),
+        "per_theta_success": (
+            None if success is None else success.reshape(n_theta, -1).mean(-1).tolist()
+        ),
         "per_theta_return": returns.reshape(n_theta, trials_per_theta).mean(-1).tolist(),
     }
 
 
 @torch.no_grad()
 def theta_sensitivity(
-    model: Firefly2DModel,
+    model: TaskModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
     thetas: torch.Tensor,
     trials_per_theta: int = 8,
@@ -439,7 +485,7 @@ def theta_sensitivity(
 
 
 def _sensitivity(
-    model: Firefly2DModel,
+    model: TaskModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
     rollout: TensorDictBase,
     alive: torch.Tensor,
@@ -504,22 +550,23 @@ def _sharpness(
 
 @torch.no_grad()
 def _policy_report(
-    model: Firefly2DModel,
+    model: TaskModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
     thetas: torch.Tensor,
     trials_per_theta: int,
     seed: int,
 ) -> dict[str, dict]:
-    """:func:`theta_sensitivity` and :func:`stop_sharpness` from one set of greedy trials."""
+    """:func:`theta_sensitivity` and, on the 2D firefly task (its stop is a forward control),
+    :func:`stop_sharpness`, from one set of greedy trials."""
     rollout, alive = _first_trials(model, policy, thetas, trials_per_theta, seed)
-    return {
-        "theta_sensitivity": _sensitivity(model, policy, rollout, alive),
-        "stop_sharpness": _sharpness(model, rollout, alive),
-    }
+    report = {"theta_sensitivity": _sensitivity(model, policy, rollout, alive)}
+    if isinstance(model, Firefly2DModel):
+        report["stop_sharpness"] = _sharpness(model, rollout, alive)
+    return report
 
 
 def _first_trials(
-    model: Firefly2DModel,
+    model: TaskModel,
     policy: Callable[[TensorDictBase], TensorDictBase],
     thetas: torch.Tensor,
     trials_per_theta: int,
@@ -535,9 +582,7 @@ def _first_trials(
     batch = thetas.shape[0] * trials_per_theta
     theta = thetas.float().repeat_interleave(trials_per_theta, 0)
     env = TransformedEnv(
-        Firefly2DEnv(
-            model=model, batch_size=(batch,), theta=theta, seed=seed, device=thetas.device
-        ),
+        TaskEnv(model=model, batch_size=(batch,), theta=theta, seed=seed, device=thetas.device),
         EKFBelief(model),
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -555,7 +600,7 @@ class TrainResult:
     actor: TensorDictSequential
     #: the critic at the end of training
     critic: TensorDictSequential
-    model: Firefly2DModel
+    model: TaskModel
     config: Firefly2DConfig
     #: one row per evaluation: frames, updates, cpu_s, train_cpu_s, success_rate, ...
     history: list[dict[str, Any]]
@@ -605,6 +650,7 @@ def train_ensemble(
     resume: str | Path | None = None,
     progress: bool = True,
     seed: int | None = None,
+    model: TaskModel | None = None,
 ) -> TrainResult:
     """Train one θ-conditioned DDPG policy over the θ prior (Algorithm 1).
 
@@ -618,23 +664,31 @@ def train_ensemble(
             are not (the buffer is refilled with ``warmup_frames`` from the current policy).
             The config's learning rates and noise bounds replace the checkpoint's (a warning
             names those that differ); other networks than the checkpoint's are refused.
-        progress: show a progress bar with the current success rate.
+        progress: show a progress bar with the current success rate (the return, for a task
+            without success).
         seed: overrides ``config.seed``.
+        model: a continuous-action task of the user's own, built on the config's device
+            (``None``: the 2D firefly task of ``config``). The config's ``task`` becomes its
+            :attr:`~irc_torchrl.envs.model.TaskModel.name`, which the checkpoint carries; its
+            ``ddpg.warmup_policy`` must be ``"random"`` and ``theta_fixed`` empty.
 
     Deterministic for a seed and a single collector process: nothing depends on wall time.
     """
     config = dataclasses.replace(config if config is not None else Firefly2DConfig())
     if seed is not None:
         config.seed = int(seed)
-    config.validate()
+    if _check_model(model) is not None:
+        config.task = model.name
+    config.validate(model)
     device = resolve_device(config.device)
     out = Path(out) if out is not None else None
     with torch_settings(config.threads, config.flush_denormal), torch.random.fork_rng():
-        return _train(config, device, out, resume, progress)
+        return _train(config, model, device, out, resume, progress)
 
 
 def _train(
     config: Firefly2DConfig,
+    model: TaskModel | None,
     device: torch.device,
     out: Path | None,
     resume: str | Path | None,
@@ -643,7 +697,7 @@ def _train(
     d, e = config.ddpg, config.evaluation
     torch.manual_seed(config.seed)
     with torch.device(device):  # TorchRL's modules and specs are built on the default device
-        model = make_model(config)
+        model = make_model(config) if model is None else model
         actor = make_actor(model, d.hidden, d.activation)
         critic = make_critic(model, d.hidden, d.activation)
         noise = AdditiveGaussianModule(
@@ -668,7 +722,7 @@ def _train(
     env_seed = config.seed
     if resume is not None:
         ckpt = load_checkpoint(
-            resume, task=TASK, theta_space=model.theta_space, required=RESUME_ENTRIES
+            resume, task=model.name, theta_space=model.theta_space, required=RESUME_ENTRIES
         )
         _check_networks(ckpt, d)
         _restore(loss, ckpt, "loss")
@@ -730,7 +784,7 @@ def _train(
         if checkpoint_path is not None:
             save_checkpoint(
                 checkpoint_path,
-                task=TASK,
+                task=model.name,
                 theta_space=model.theta_space,
                 config=dataclasses.asdict(config),
                 state=state(),
@@ -745,14 +799,17 @@ def _train(
         row = {"frames": frames, "updates": updates, "cpu_s": cpu, "train_cpu_s": cpu - eval_cpu}
         row.update({k: v for k, v in metrics.items() if not k.startswith("per_theta")})
         history.append(row)
-        logger.log({k: v for k, v in row.items() if k not in ("frames", "updates")}, frames)
+        logged = {k: v for k, v in row.items() if k not in ("frames", "updates") and v is not None}
+        logger.log(logged, frames)
         if best is None or metrics["mean_return"] > best["mean_return"]:
             best = {**metrics, "frames": frames, "updates": updates}
             best_actor = {k: v.clone() for k, v in actor.state_dict().items()}
-        if bar is not None:
+        if bar is not None and metrics["success_rate"] is not None:
             bar.set_postfix(
                 success=f"{metrics['success_rate']:.0%}", best=f"{best['success_rate']:.0%}"
             )
+        elif bar is not None:
+            bar.set_postfix(ret=f"{metrics['mean_return']:.3g}", best=f"{best['mean_return']:.3g}")
 
     warmup = min(d.warmup_frames, d.buffer_size)
     teacher = BeliefPursuit(model) if d.warmup_policy == "pursuit" else None
@@ -830,7 +887,7 @@ def _train(
             out / "summary.json",
             {
                 "command": "train",
-                "task": TASK,
+                "task": model.name,
                 "seed": config.seed,
                 "version": irc_torchrl.__version__,
                 "frames": frames,
@@ -855,7 +912,7 @@ def _device_rng_state(device: torch.device) -> dict[str, torch.Tensor]:
 
 
 def _make_loss(
-    model: Firefly2DModel, actor: TensorDictSequential, critic: TensorDictSequential, d: DDPGConfig
+    model: TaskModel, actor: TensorDictSequential, critic: TensorDictSequential, d: DDPGConfig
 ) -> tuple[LossModule, TensorDictBase, str, Callable[[TensorDictBase], tuple]]:
     """TorchRL's DDPG or TD3 loss over ``actor`` and ``critic``: the loss, the critic's
     parameters (TD3's twin copies stacked), the key of the critic's loss in its output, and
@@ -955,7 +1012,7 @@ def _extend(
 
 def _make_collector(
     config: Firefly2DConfig,
-    model: Firefly2DModel,
+    model: TaskModel,
     policy: TensorDictModuleBase,
     seed: int,
     total_frames: int,
@@ -1065,50 +1122,51 @@ def _misfit(ckpt: Mapping[str, Any], entry: str, problem: str) -> ValueError:
 
 
 def _load(
-    source: str | Path, required: Sequence[str]
-) -> tuple[Firefly2DConfig, Firefly2DModel, dict[str, Any]]:
-    """A checkpoint holding the entries ``required``: its config and task model, the θ space
-    checked against the config's own."""
-    ckpt = load_checkpoint(source, task=TASK, required=required)
+    source: str | Path, required: Sequence[str], model: TaskModel | None = None
+) -> tuple[Firefly2DConfig, TaskModel, dict[str, Any]]:
+    """A checkpoint holding the entries ``required``: its config and task model (``model``,
+    or the 2D firefly of its config), the θ space checked against that model's."""
+    task = TASK if _check_model(model) is None else model.name
+    ckpt = load_checkpoint(source, task=task, required=required)
     try:
-        config = config_from_dict(ckpt["config"])
-        model = make_model(config.validate())
+        config = config_from_dict(ckpt["config"]).validate(model)
     except (TypeError, ValueError) as error:
         raise ValueError(
             f"checkpoint {ckpt['path']}: entry config is not a config irc train writes ({error})"
         ) from None
+    whose = "its own config's" if model is None else "the model's"
+    model = make_model(config) if model is None else model
     if ThetaSpace.from_config(ckpt["theta_space"]) != model.theta_space:
-        raise ValueError(
-            f"checkpoint {ckpt['path']}: theta_space does not match its own config's θ space"
-        )
+        raise ValueError(f"checkpoint {ckpt['path']}: theta_space does not match {whose} θ space")
     return config, model, ckpt
 
 
 def load_ensemble_policy(
-    source: str | Path = TASK, device: torch.device | str = "cpu"
-) -> tuple[TensorDictSequential, Firefly2DModel, dict[str, Any]]:
+    source: str | Path = TASK, device: torch.device | str = "cpu", model: TaskModel | None = None
+) -> tuple[TensorDictSequential, TaskModel, dict[str, Any]]:
     """The kept (best-by-evaluation) policy of a checkpoint: ``(actor, model, checkpoint)``.
 
     ``source`` is a path or the name of a packaged checkpoint (default: the shipped one); the
     actor and the model (its action spec) are built on ``device``, whatever torch's default
-    device is.
+    device is. ``model``: the task of the user's own the checkpoint was trained on, built on
+    ``device`` (its name and θ space are checked); ``None``: the 2D firefly task.
     """
     with torch.device(resolve_device(str(device))):
-        config, model, ckpt = _load(source, ("best_actor",))
+        config, model, ckpt = _load(source, ("best_actor",), model)
         actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
     _restore(actor, ckpt, "best_actor")
     return actor.requires_grad_(False), model, ckpt
 
 
 def load_ensemble_critic(
-    source: str | Path = TASK,
-) -> tuple[TensorDictSequential, TensorDictSequential, Firefly2DModel]:
+    source: str | Path = TASK, model: TaskModel | None = None
+) -> tuple[TensorDictSequential, TensorDictSequential, TaskModel]:
     """A checkpoint's critic and the actor it values, both at its last update.
 
     Returns ``(critic, actor, model)``; the critic is ``Q(b, a, θ)`` of that actor (the kept
-    policy may be an earlier one).
+    policy may be an earlier one). ``model`` as in :func:`load_ensemble_policy`.
     """
-    config, model, ckpt = _load(source, ("actor", "loss"))
+    config, model, ckpt = _load(source, ("actor", "loss"), model)
     hidden, activation = config.ddpg.hidden, config.ddpg.activation
     actor, critic = make_actor(model, hidden, activation), make_critic(model, hidden, activation)
     _restore(actor, ckpt, "actor")

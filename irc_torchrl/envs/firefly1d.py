@@ -61,6 +61,7 @@ class Firefly1DModel(TaskModel):
     #: the action is an integer index: 0 = left, 1 = stop, 2 = right
     action_names = ("action",)
     target_names = ("target_x",)
+    name = "firefly1d"
 
     def __init__(
         self,
@@ -128,8 +129,14 @@ class Firefly1DModel(TaskModel):
         stop: torch.Tensor,
         theta: torch.Tensor,
     ) -> torch.Tensor:
-        inside = ((state - target).abs() < self._theta(theta, "goal_radius")).to(state.dtype)
-        return torch.where(stop, self.reward_value * inside, -self._theta(theta, "move_cost"))
+        success = self.succeeded(state, target, stop, theta).to(state.dtype)
+        return torch.where(stop, self.reward_value * success, -self._theta(theta, "move_cost"))
+
+    def succeeded(
+        self, state: torch.Tensor, target: torch.Tensor, stop: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
+        """Stopped inside the goal: what the world rewards."""
+        return stop & ((state - target).abs() < self._theta(theta, "goal_radius"))
 
     #: the agent knows where it starts, up to this variance (positive, so σ stays differentiable)
     initial_variance = 1e-4

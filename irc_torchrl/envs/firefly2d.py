@@ -148,6 +148,7 @@ class Firefly2DModel(TaskModel):
     #: dimensionless controls in [-1, 1], scaled by the gains ``g_v``, ``g_w``
     action_names = ("a_v", "a_w")
     target_names = ("target_x", "target_y")
+    name = "firefly2d"
 
     def __init__(
         self,
@@ -280,9 +281,15 @@ class Firefly2DModel(TaskModel):
         stop: torch.Tensor,
         theta: torch.Tensor,
     ) -> torch.Tensor:
+        success = self.succeeded(state, target, stop, theta)
+        return self.reward_value * success.to(state.dtype) - self.effort(action, theta)
+
+    def succeeded(
+        self, state: torch.Tensor, target: torch.Tensor, stop: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor:
+        """Stopped inside the goal: what the world rewards."""
         distance = (state[..., :2] - target).norm(dim=-1, keepdim=True)
-        inside = distance < self._theta(theta, "goal_radius")
-        return self.reward_value * (stop & inside).to(state.dtype) - self.effort(action, theta)
+        return stop & (distance < self._theta(theta, "goal_radius"))
 
     # --- agent ---------------------------------------------------------------------------
     def initial_belief(

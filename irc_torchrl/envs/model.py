@@ -50,6 +50,11 @@ class TaskModel(abc.ABC):
     #: names of the target's components, in the state's distance units
     target_names: tuple[str, ...]
 
+    @property
+    def name(self) -> str:
+        """The task's name, which its checkpoints carry (by default the class's name)."""
+        return type(self).__name__
+
     # --- world ---------------------------------------------------------------------------
     @abc.abstractmethod
     def initial_state(
@@ -100,6 +105,14 @@ class TaskModel(abc.ABC):
         theta: torch.Tensor,
     ) -> torch.Tensor:
         """The reward ``[*B, 1]`` the world pays for ``action`` taken in ``state``."""
+
+    def succeeded(
+        self, state: torch.Tensor, target: torch.Tensor, stop: torch.Tensor, theta: torch.Tensor
+    ) -> torch.Tensor | None:
+        """Whether a trial that ends in ``state`` (by stopping where ``stop``) did the task,
+        ``[*B, 1]`` bool, judged by the world's ``theta``; ``None`` (the default): the task
+        has no success, and evaluations score its return alone."""
+        return None
 
     # --- agent ---------------------------------------------------------------------------
     @abc.abstractmethod
