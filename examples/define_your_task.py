@@ -65,6 +65,9 @@ that act by it::
 
     python examples/define_your_task.py --out runs/own_task --train-frames 200000  # ~2 min
 
+(or from the command line, ``irc train --model examples/define_your_task.py:ReachModel
+ddpg.warmup_policy=random`` with the settings of :func:`ensemble_config`).
+
 At seed 0 the learned policy costs 1.23× the controller's over 16 θ (1.00-1.86×). It reads θ
 otherwise than the optimum: its control turns on the effort cost a third as much (0.12 against
 0.41) and on the observation noise, which the controller ignores (LQG's certainty equivalence).

@@ -60,18 +60,67 @@ def _train(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.ensemble import train_ensemble
     from irc_torchrl.config import load_firefly2d_config
 
+    model = _task_model(args.model) if args.model is not None else None
     device = [f"device={args.device}"] if args.device is not None else []
-    config = load_firefly2d_config(args.config, [*args.overrides, *device])
+    config = load_firefly2d_config(args.config, [*args.overrides, *device], model)
+    if model is not None and ".py:" in args.model and config.ddpg.collector_workers > 1:
+        raise ValueError(
+            f"--model: a task from a file ({args.model}) cannot be sent to collector processes; "
+            f"expected ddpg.collector_workers=1 (or the task as module:Class), "
+            f"got {config.ddpg.collector_workers}"
+        )
     result = train_ensemble(
-        config, out=args.out, resume=args.resume, progress=not args.quiet, seed=args.seed
+        config,
+        out=args.out,
+        resume=args.resume,
+        progress=not args.quiet,
+        seed=args.seed,
+        model=model,
     )
     best = result.best
+    success = f"success {best['success_rate']:.1%}, " if best["success_rate"] is not None else ""
     print(
-        f"best policy: success {best['success_rate']:.1%}, return {best['mean_return']:.2f}, "
+        f"best policy: {success}return {best['mean_return']:.2f}, "
         f"trial length {best['mean_length']:.1f} steps (after {best['updates']} updates)"
     )
     print(f"wrote {args.out}/: checkpoint.pt, config.yaml, summary.json, logs/")
     return 0
+
+
+def _task_model(spec: str):
+    """The task ``--model`` names, ``FILE.py:Class`` or ``module:Class``, built without
+    arguments."""
+    import importlib
+    import importlib.util
+
+    from irc_torchrl.envs.model import TaskModel
+
+    source, _, name = spec.rpartition(":")
+    if not source or not name.isidentifier():
+        raise ValueError(f"--model: expected FILE.py:Class or module:Class, got {spec!r}")
+    if source.endswith(".py"):
+        path = Path(source)
+        if not path.is_file():
+            raise FileNotFoundError(f"--model: no file at {path}")
+        found = importlib.util.spec_from_file_location(f"irc_task_{path.stem}", path)
+        module = importlib.util.module_from_spec(found)
+        found.loader.exec_module(module)
+    else:
+        module = importlib.import_module(source)
+    task = getattr(module, name, None)
+    if not (isinstance(task, type) and issubclass(task, TaskModel)):
+        if task is None:
+            found = "nothing by that name"
+        else:
+            found = f"a {(task.__mro__[1] if isinstance(task, type) else type(task)).__name__}"
+            found += " subclass" if isinstance(task, type) else ""
+        raise ValueError(
+            f"--model: expected {name} in {source} to be a TaskModel subclass, got {found}"
+        )
+    try:
+        return task()
+    except TypeError as error:
+        raise ValueError(f"--model: {name}() must build without arguments ({error})") from None
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -288,9 +337,16 @@ def build_parser() -> argparse.ArgumentParser:
         "train",
         help="train one θ-conditioned policy over the θ prior (Algorithm 1, 2D task)",
         description=(
-            "DDPG over the whole θ prior of the 2D firefly task; writes checkpoint.pt (every "
-            "checkpoint_every updates and at the end), config.yaml, summary.json and logs."
+            "DDPG over the whole θ prior of the 2D firefly task, or of a task of your own "
+            "(--model); writes checkpoint.pt (every checkpoint_every updates and at the end), "
+            "config.yaml, summary.json and logs."
         ),
+    )
+    train.add_argument(
+        "--model",
+        default=None,
+        help="a continuous-action TaskModel of your own, as FILE.py:Class or module:Class, "
+        "built without arguments (needs ddpg.warmup_policy=random; default: the firefly2d task)",
     )
     train.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     train.add_argument("--out", default="runs/train", help="output folder (default runs/train)")

@@ -25,6 +25,7 @@ from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 from irc_torchrl.checks import SEED_LIMIT, check_fields
 from irc_torchrl.checks import positive as _positive
+from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
 from irc_torchrl.modules.likelihood import LAPSE_MAX
 
@@ -346,10 +347,17 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
 
 
 def load_firefly2d_config(
-    path: str | Path | None = None, overrides: Sequence[str] = ()
+    path: str | Path | None = None, overrides: Sequence[str] = (), model: TaskModel | None = None
 ) -> Firefly2DConfig:
-    """The 2D ensemble-training config: embedded default, then the YAML file, then ``key=value``."""
-    return _update(Firefly2DConfig(), path, overrides).validate()
+    """The ensemble-training config: embedded default, then the YAML file, then ``key=value``.
+
+    ``model``: a task of the user's own; its name is the default's task, and the config is
+    checked for it (``None``: the 2D firefly task).
+    """
+    config = Firefly2DConfig()
+    if model is not None:
+        config.task = model.name
+    return _update(config, path, overrides).validate(model)
 
 
 def load_simulate_config(overrides: Sequence[str] = ()) -> SimulateConfig:

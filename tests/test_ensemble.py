@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import statistics
 from pathlib import Path
 
@@ -36,6 +37,7 @@ from irc_torchrl.algorithms.ensemble import (
     train_ensemble,
 )
 from irc_torchrl.checkpoint import load_checkpoint
+from irc_torchrl.cli import main
 from irc_torchrl.config import config_to_dict, load_firefly2d_config
 from irc_torchrl.envs.belief import BELIEF_MEAN
 from irc_torchrl.envs.firefly1d import Firefly1DModel
@@ -1047,3 +1049,55 @@ def test_an_own_task_the_trainer_cannot_train_is_refused_before_any_work(
     model = reach.ReachModel() if model == "reach" else model()
     with pytest.raises(ValueError, match=message):
         train_ensemble(config, progress=False, model=model)
+
+
+#: the example's task as ``irc train --model`` names it, and a short run's settings
+REACH = f"{Path(__file__).resolve().parents[1] / 'examples' / 'define_your_task.py'}:ReachModel"
+SHORT = [
+    *("ddpg.warmup_policy=random", "ddpg.warmup_frames=1024"),
+    *("ddpg.n_envs=32", "evaluation.n_theta=4", "evaluation.trials_per_theta=2"),
+    *("evaluation.every=20", "logger=none"),
+]
+
+
+def test_irc_train_trains_and_resumes_a_task_named_on_the_command_line(tmp_path, capsys):
+    """``irc train --model FILE.py:Class`` trains the user's task (no success: the return
+    alone is printed) and resumes it from its checkpoint."""
+    out = tmp_path / "run"
+    argv = ["train", "--model", REACH, "--quiet", *SHORT]
+    assert main([*argv, "--out", str(out), "ddpg.total_frames=2048"]) == 0
+    printed = capsys.readouterr().out
+    assert "best policy: return " in printed and "success" not in printed
+    first = load_checkpoint(out / "checkpoint.pt")
+    assert first["task"] == first["config"]["task"] == "reach_and_hold"
+    more = ["--resume", str(out / "checkpoint.pt"), "--out", str(tmp_path / "more")]
+    assert main([*argv, *more, "ddpg.total_frames=4096"]) == 0
+    resumed = load_checkpoint(tmp_path / "more" / "checkpoint.pt")["counters"]
+    assert resumed["updates"] > first["counters"]["updates"]
+
+
+@pytest.mark.parametrize(
+    "model, extra, message",
+    [
+        ("bad", [], "--model: expected FILE.py:Class or module:Class, got 'bad'"),
+        ("nosuch.py:Task", [], "--model: no file at nosuch.py"),
+        (REACH[:-10] + "LQGController", [], "to be a TaskModel subclass, got a Module subclass"),
+        (REACH[:-10] + "Nope", [], "to be a TaskModel subclass, got nothing by that name"),
+        (
+            "irc_torchrl.envs.firefly1d:Firefly1DModel",
+            [],
+            "model.action_spec: expected a bounded box of continuous actions",
+        ),
+        (REACH, ["task=firefly2d"], "config: task must be 'reach_and_hold', got 'firefly2d'"),
+        (REACH, ["ddpg.collector_workers=2"], "--model: a task from a file .* cannot be sent"),
+    ],
+)
+def test_irc_train_refuses_a_model_it_cannot_train_before_any_work(
+    model, extra, message, tmp_path, capsys
+):
+    out = tmp_path / "run"
+    argv = ["train", "--model", model, "--out", str(out), "--quiet", *SHORT, *extra]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err), err
+    assert not out.exists()
