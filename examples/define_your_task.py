@@ -34,7 +34,7 @@ What you write, as :class:`ReachModel` below does:
   saturates at ±1, where the discrete-time gain on the distance is 10-16% lower). A
   hand-written policy goes into
   :class:`~irc_torchrl.modules.likelihood.CensoredGaussianActionModel` directly; an actor
-  trained by Algorithm 1 (``make_actor``, DDPG as in ``assemble_in_torchrl.py``) through
+  trained by Algorithm 1 (``train_ensemble(model=...)``, below) through
   ``censored_action_model``.
 
 What you get, unchanged: :class:`~irc_torchrl.envs.task_env.TaskEnv` (a batched TorchRL env,

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import re
 import statistics
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -14,7 +16,7 @@ import yaml
 from tensordict import TensorDict
 from test_checkpoint import tiny
 from test_examples import _load_example
-from torchrl.data import Unbounded
+from torchrl.data import Bounded, OneHot, TensorSpec, Unbounded
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
 from irc_torchrl.algorithms.ensemble import (
@@ -42,6 +44,7 @@ from irc_torchrl.config import config_to_dict, load_firefly2d_config
 from irc_torchrl.envs.belief import BELIEF_MEAN
 from irc_torchrl.envs.firefly1d import Firefly1DModel
 from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import make_actor, make_critic
 from irc_torchrl.modules.pursuit import BeliefPursuit
 
@@ -520,6 +523,11 @@ def test_evaluation_scores_the_first_trial_of_each_row_by_the_goal_the_world_set
         [model.reward_value, 0.0, model.reward_value]
     )
     assert metrics["mean_length"] == model.min_steps + 1  # steps 0..min_steps
+    # inside the goal all along but never stopping: the timeout is no success
+    brief = Firefly2DModel(target_distance=(0.3, 0.3), target_angle=math.pi, max_steps=5)
+    wider = space.from_dict({**quiet, "sigma_pos": 0.0, "goal_radius": 0.5})
+    going = _scripted(lambda td: torch.full_like(td["step"], 0.15, dtype=torch.float32))
+    assert evaluate_policy(brief, going, wider[None], 8, seed=0)["success_rate"] == 0.0
 
 
 def test_theta_sensitivity_is_the_mean_absolute_change_over_each_parameters_range():
@@ -899,6 +907,7 @@ def test_the_clones_target_is_the_teachers_action_held_off_the_bounds_at_097():
 
 # --- a task of the user's own --------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def reach():
     return _load_example("define_your_task")
@@ -1003,24 +1012,95 @@ def test_an_own_task_without_success_is_evaluated_and_logged_by_its_return(own_t
     assert "mean_return" in logged and "success_rate" not in logged
 
 
-def test_an_own_task_resumes_from_its_checkpoint(reach, own_task, tmp_path):
+def test_an_own_task_resumes_from_its_checkpoint(own_task):
     """Resumed with its model, a run continues the checkpoint's counters (and refuses the
     firefly task's model)."""
     result, out = own_task
-    longer = result.config
+    longer = copy.deepcopy(result.config)
     longer.ddpg.total_frames += 4096  # the buffer refills with 2048 frames before updating
     resumed = train_ensemble(
         longer, resume=out / "checkpoint.pt", progress=False, model=result.model
     )
-    assert resumed.frames > result.frames and resumed.updates > result.updates
+    assert resumed.frames == result.frames + 4096 and resumed.updates > result.updates
+    assert resumed.history[: len(result.history)] == result.history  # the checkpoint's
+    updates = [row["updates"] for row in resumed.history]
+    assert updates == sorted(set(updates))  # counted on from the checkpoint's
     with pytest.raises(ValueError, match="task is 'reach_and_hold', expected 'firefly2d'"):
         train_ensemble(tiny(), resume=out / "checkpoint.pt", progress=False)
 
 
-def _unbounded() -> Firefly2DModel:
-    model = Firefly2DModel()
-    model.action_spec = Unbounded(shape=(2,), dtype=torch.float32)
-    return model
+def test_the_firefly_task_given_as_a_model_trains_and_loads_as_by_default(tmp_path):
+    """``model=Firefly2DModel()`` is the default task: the same training bit for bit (the
+    pursuit warm-up included) and the shipped checkpoint's policy."""
+    default = train_ensemble(tiny(), progress=False)
+    given = train_ensemble(tiny(), progress=False, model=Firefly2DModel())
+    for name, value in default.actor.state_dict().items():
+        assert torch.equal(given.actor.state_dict()[name], value)
+    assert given.history[-1]["mean_return"] == default.history[-1]["mean_return"]
+    shipped, _, _ = load_ensemble_policy()
+    loaded, _, _ = load_ensemble_policy("firefly2d", model=Firefly2DModel())
+    for name, value in shipped.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], value)
+
+
+def test_the_progress_bar_shows_the_success_rate_or_for_a_task_without_one_the_return(
+    reach, monkeypatch
+):
+    from irc_torchrl.algorithms import ensemble
+
+    shown = []
+
+    class Bar:
+        def update(self, n: int) -> None:
+            pass
+
+        def set_postfix(self, **values: str) -> None:
+            shown.append(values)
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(ensemble, "_progress_bar", lambda *args: Bar())
+    train_ensemble(tiny("evaluation.every=1000"), progress=True)
+    assert set(shown[-1]) == {"success", "best"} and shown[-1]["success"].endswith("%")
+    config = reach.ensemble_config(1536, seed=0)
+    config.ddpg.warmup_frames, config.logger = 1024, "none"
+    result = train_ensemble(config, progress=True, model=reach.ReachModel())
+    assert shown[-1] == {
+        "ret": f"{result.history[-1]['mean_return']:.3g}",
+        "best": f"{result.best['mean_return']:.3g}",
+    }
+
+
+def test_a_task_is_named_by_its_class_unless_it_or_a_base_names_it(reach):
+    """The checkpoints' task name: a class attribute, inherited, or the class's own name; an
+    instance may set its own."""
+
+    class Narrower(reach.ReachModel):
+        pass
+
+    class Unnamed(TaskModel):  # abstract: its name is read off the class
+        pass
+
+    class Mine(reach.ReachModel):
+        def __init__(self) -> None:
+            self.name = "mine"
+
+    assert Firefly2DModel().name == "firefly2d" and Firefly1DModel().name == "firefly1d"
+    assert Narrower().name == "reach_and_hold"
+    assert Unnamed.name == "Unnamed"
+    assert Mine().name == "mine" and Mine.name == "reach_and_hold"
+
+
+def _with_actions(spec: TensorSpec) -> Callable[[], Firefly2DModel]:
+    """The 2D task with another action spec."""
+
+    def build() -> Firefly2DModel:
+        model = Firefly2DModel()
+        model.action_spec = spec
+        return model
+
+    return build
 
 
 @pytest.mark.parametrize(
@@ -1030,11 +1110,22 @@ def _unbounded() -> Firefly2DModel:
         (
             {"theta_fixed": {"g": 1.0}},
             "reach",
-            "theta_fixed names the firefly2d task's parameters; for task 'reach_and_hold'",
+            "theta_fixed builds the firefly2d task's θ space; for a model given, fix them",
         ),
         ({}, Firefly1DModel, "model.action_spec: expected a bounded box of continuous"),
-        ({}, _unbounded, "model.action_spec: expected a bounded box of continuous"),
+        (
+            {},
+            _with_actions(Unbounded(shape=(2,), dtype=torch.float32)),
+            "model.action_spec: expected a bounded box of continuous actions, shape",
+        ),
+        (
+            {},
+            _with_actions(Bounded(0, 2, shape=(2,), dtype=torch.int64)),
+            "model.action_spec: expected a bounded box of continuous actions, shape",
+        ),
+        ({}, _with_actions(OneHot(3)), "got OneHot of torch.bool, shape \\[3\\]"),
         ({}, lambda: "not a model", "model: expected a TaskModel, got str"),
+        ({}, lambda: Firefly2DModel, r"model: got the class Firefly2DModel; pass an instance"),
     ],
 )
 def test_an_own_task_the_trainer_cannot_train_is_refused_before_any_work(
@@ -1088,7 +1179,11 @@ def test_irc_train_trains_and_resumes_a_task_named_on_the_command_line(tmp_path,
             [],
             "model.action_spec: expected a bounded box of continuous actions",
         ),
-        (REACH, ["task=firefly2d"], "config: task must be 'reach_and_hold', got 'firefly2d'"),
+        (
+            REACH,
+            ["task=firefly2d"],
+            "config: task must be the model's, 'reach_and_hold', got 'firefly2d'",
+        ),
         (REACH, ["ddpg.collector_workers=2"], "--model: a task from a file .* cannot be sent"),
     ],
 )

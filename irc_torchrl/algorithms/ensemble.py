@@ -36,7 +36,7 @@ import yaml
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
-from torchrl.data import Categorical, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import Compose, EnvBase, MultiStepTransform, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule
@@ -74,7 +74,7 @@ __all__ = [
     "train_ensemble",
 ]
 
-TASK = "firefly2d"
+TASK = Firefly2DModel.name
 #: the entries of its checkpoint a resumed run reads (besides the config and θ space)
 RESUME_ENTRIES = (
     "loss",
@@ -199,7 +199,8 @@ class EvaluationConfig:
 
 @dataclass
 class Firefly2DConfig:
-    """Algorithm 1 on the 2D firefly task (``irc train --config configs/firefly2d.yaml``)."""
+    """Algorithm 1 on the 2D firefly task (``irc train --config configs/firefly2d.yaml``), or on
+    a task of the user's own (``train_ensemble(model=...)``, ``irc train --model``)."""
 
     task: str = TASK
     #: seed 3 trained the shipped policy (of seeds 0-6 reaching 80%, the one that stops most
@@ -228,9 +229,13 @@ class Firefly2DConfig:
         """
         check_fields(self)
         d, e = self.ddpg, self.evaluation
-        task = TASK if model is None else model.name
-        if self.task != task:
-            raise ValueError(f"config: task must be {task!r}, got {self.task!r}")
+        if model is None and self.task != TASK:
+            raise ValueError(
+                f"config: task must be {TASK!r} (a task of your own is given as a model), "
+                f"got {self.task!r}"
+            )
+        if model is not None and self.task != model.name:
+            raise ValueError(f"config: task must be the model's, {model.name!r}, got {self.task!r}")
         positive = {
             "threads": self.threads,
             "checkpoint_every": self.checkpoint_every,
@@ -336,34 +341,46 @@ class Firefly2DConfig:
             )
         if model is None:
             make_model(self)  # theta_fixed: unknown names and out-of-range values
-        else:
-            _check_own_task(self, model)
         return self
 
 
-def _check_own_task(config: Firefly2DConfig, model: TaskModel) -> None:
-    """Refuse the settings a task of the user's own cannot train with, and tasks DDPG cannot."""
+def _check_trainable(config: Firefly2DConfig, model: TaskModel) -> None:
+    """Refuse to train a model given to :func:`train_ensemble` with settings it cannot train
+    with (the θ space is the model's; the pursuit warm-up knows the 2D firefly only), or a
+    model whose actions DDPG's actor cannot produce."""
     if config.theta_fixed:
         raise ValueError(
-            f"config: theta_fixed names the firefly2d task's parameters; for task "
-            f"{model.name!r} fix them in its θ space (ThetaSpace(..., fixed=...)), "
-            f"got {config.theta_fixed}"
+            f"config: theta_fixed builds the firefly2d task's θ space; for a model given, fix "
+            f"them in its own (ThetaSpace(..., fixed=...)), got {config.theta_fixed}"
         )
-    if config.ddpg.warmup_policy != "random":
+    if config.ddpg.warmup_policy == "pursuit" and not isinstance(model, Firefly2DModel):
         raise ValueError(
-            f"config: ddpg.warmup_policy={config.ddpg.warmup_policy!r} runs the firefly2d "
-            f"task's pursuit controller; expected 'random' for task {model.name!r}"
+            f"config: ddpg.warmup_policy='pursuit' runs the firefly2d task's pursuit "
+            f"controller; expected 'random' for task {model.name!r}"
         )
     spec = model.action_spec
-    if isinstance(spec, Categorical) or not bounded_box(spec.space.low, spec.space.high):
+    if not (spec.domain == "continuous" and spec.ndim == 1) or not bounded_box(
+        spec.space.low, spec.space.high
+    ):
         raise ValueError(
-            f"model.action_spec: expected a bounded box of continuous actions (the actor "
-            f"squashes into it), got {type(spec).__name__} of {spec.dtype}"
+            f"model.action_spec: expected a bounded box of continuous actions, shape [n] (the "
+            f"actor squashes into it), got {type(spec).__name__} of {spec.dtype}, shape "
+            f"{list(spec.shape)}"
+        )
+    device = resolve_device(config.device)
+    if torch.device(spec.device or "cpu").type != device.type:
+        raise ValueError(
+            f"model.action_spec: expected on the config's device {device} (build the model "
+            f"there), got {spec.device}"
         )
 
 
 def _check_model(model: Any) -> TaskModel | None:
     """``model`` if it is a task model or None, else a one-line refusal."""
+    if isinstance(model, type) and issubclass(model, TaskModel):
+        raise ValueError(
+            f"model: got the class {model.__name__}; pass an instance, {model.__name__}()"
+        )
     if model is not None and not isinstance(model, TaskModel):
         raise ValueError(f"model: expected a TaskModel, got {type(model).__name__}")
     return model
@@ -428,8 +445,9 @@ def evaluate_policy(
 ) -> dict[str, Any]:
     """Score ``policy`` (greedy) on one trial per environment, ``trials_per_theta`` per θ.
 
-    The world pays its own reward (the true position inside the goal on stopping, minus effort),
-    not the agent's expected one: this is what an experimenter would score. Every call with the
+    The world pays its own reward (on the firefly task, the true position inside the goal on
+    stopping, minus effort), not the agent's expected one: this is what an experimenter would
+    score. Every call with the
     same ``seed`` faces the same θ and first targets, and the same noise until a row's trial
     ends: the rows share one random stream, which that row's reset then moves on, so later
     noise depends on when the policy stops (a difference of noise, not of bias).
@@ -449,13 +467,20 @@ def evaluate_policy(
     success = model.succeeded(end["state"], end["target"], stop, end["task_theta"])
     n_theta = thetas.shape[0]
     if success is not None:
+        if success.shape != stop.shape:
+            raise ValueError(
+                f"model.succeeded: expected {list(stop.shape)} bool, as model.stops gives, "
+                f"got {list(success.shape)}"
+            )
         success = success.squeeze(-1).float()
     return {
         "success_rate": None if success is None else float(success.mean()),
         "mean_return": float(returns.mean()),
         "mean_length": float((last + 1).float().mean()),
         "per_theta_success": (
-            None if success is None else success.reshape(n_theta, -1).mean(-1).tolist()
+            None
+            if success is None
+            else success.reshape(n_theta, trials_per_theta).mean(-1).tolist()
         ),
         "per_theta_return": returns.reshape(n_theta, trials_per_theta).mean(-1).tolist(),
     }
@@ -667,10 +692,12 @@ def train_ensemble(
         progress: show a progress bar with the current success rate (the return, for a task
             without success).
         seed: overrides ``config.seed``.
-        model: a continuous-action task of the user's own, built on the config's device
-            (``None``: the 2D firefly task of ``config``). The config's ``task`` becomes its
-            :attr:`~irc_torchrl.envs.model.TaskModel.name`, which the checkpoint carries; its
-            ``ddpg.warmup_policy`` must be ``"random"`` and ``theta_fixed`` empty.
+        model: a continuous-action task of the user's own, its action spec on the config's
+            device (``None``: the 2D firefly task of ``config``). The config's ``task`` becomes
+            its :attr:`~irc_torchrl.envs.model.TaskModel.name`, which the checkpoint carries;
+            ``theta_fixed`` must be empty and ``ddpg.warmup_policy`` ``"random"`` (the
+            pursuit warm-up knows the 2D firefly only). With ``collector_workers > 1`` the
+            model goes to the collector processes, so its class must be importable there.
 
     Deterministic for a seed and a single collector process: nothing depends on wall time.
     """
@@ -680,6 +707,8 @@ def train_ensemble(
     if _check_model(model) is not None:
         config.task = model.name
     config.validate(model)
+    if model is not None:
+        _check_trainable(config, model)
     device = resolve_device(config.device)
     out = Path(out) if out is not None else None
     with torch_settings(config.threads, config.flush_denormal), torch.random.fork_rng():

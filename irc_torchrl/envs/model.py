@@ -49,11 +49,13 @@ class TaskModel(abc.ABC):
     action_names: tuple[str, ...]
     #: names of the target's components, in the state's distance units
     target_names: tuple[str, ...]
+    #: the task's name, which its checkpoints carry (a class that names none: the class's name)
+    name: str
 
-    @property
-    def name(self) -> str:
-        """The task's name, which its checkpoints carry (by default the class's name)."""
-        return type(self).__name__
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if getattr(cls, "name", None) is None:
+            cls.name = cls.__name__
 
     # --- world ---------------------------------------------------------------------------
     @abc.abstractmethod
