@@ -60,15 +60,10 @@ def _train(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.ensemble import train_ensemble
     from irc_torchrl.config import load_firefly2d_config
 
-    model = _task_model(args.model) if args.model is not None else None
+    model = _task_model(args.model)
     device = [f"device={args.device}"] if args.device is not None else []
     config = load_firefly2d_config(args.config, [*args.overrides, *device], model)
-    if model is not None and ".py:" in args.model and config.ddpg.collector_workers > 1:
-        raise ValueError(
-            f"--model: a task from a file ({args.model}) cannot be sent to collector processes; "
-            f"expected ddpg.collector_workers=1 (or the task as module:Class), "
-            f"got {config.ddpg.collector_workers}"
-        )
+    _check_sendable(args.model, "ddpg.collector_workers", config.ddpg.collector_workers)
     result = train_ensemble(
         config,
         out=args.out,
@@ -87,14 +82,16 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _task_model(spec: str):
+def _task_model(spec: str | None):
     """The task ``--model`` names, ``FILE.py:Class`` or ``module:Class``, built without
-    arguments."""
+    arguments (None: none named)."""
     import importlib
     import importlib.util
 
     from irc_torchrl.envs.model import TaskModel
 
+    if spec is None:
+        return None
     source, _, name = spec.rpartition(":")
     if not source or not name.isidentifier():
         raise ValueError(f"--model: expected FILE.py:Class or module:Class, got {spec!r}")
@@ -123,6 +120,15 @@ def _task_model(spec: str):
         raise ValueError(f"--model: {name}() must build without arguments ({error})") from None
 
 
+def _check_sendable(spec: str | None, field: str, processes: int) -> None:
+    """Refuse to send a task read from a file to other processes, which cannot import it."""
+    if spec is not None and ".py:" in spec and processes > 1:
+        raise ValueError(
+            f"--model: a task from a file ({spec}) cannot be sent to other processes; "
+            f"expected {field}=1 (or the task as module:Class), got {processes}"
+        )
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.recordings import simulate_recordings
     from irc_torchrl.config import load_simulate_config
@@ -137,6 +143,7 @@ def _simulate(args: argparse.Namespace) -> int:
         args.device,
         progress=not args.quiet,
         task=args.task,
+        model=_task_model(args.model),
     )
     for agent in summary["agents"]:
         theta = ", ".join(f"{k}={v:.3g}" for k, v in agent["theta_true"].items())
@@ -153,6 +160,7 @@ def _fit(args: argparse.Namespace) -> int:
     config = load_recording_fit_config(settings)
     # an empty --free names nothing to fit (refused), not every parameter
     free = None if args.free is None else [n.strip() for n in args.free.split(",") if n.strip()]
+    _check_sendable(args.model, "workers", config.workers)
     summary = fit_recordings(
         files,
         args.out,
@@ -163,6 +171,7 @@ def _fit(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         progress=not args.quiet,
+        model=_task_model(args.model),
     )
     print(format_fit(summary))
     print(f"wrote {args.out}/: summary.json, beliefs.npz and figures (PNG)")
@@ -189,18 +198,30 @@ def _report(args: argparse.Namespace) -> int:
 
 
 def _add_common(parser: argparse.ArgumentParser, overrides_help: str) -> None:
-    """The options every 2D subcommand shares: checkpoint, seed, device, quiet, key=value."""
+    """The options every 2D subcommand shares: checkpoint, model, seed, device, quiet,
+    key=value."""
     parser.add_argument(
         "--checkpoint",
         default="firefly2d",
         help="a checkpoint file of `irc train`, or the name of a packaged one (default firefly2d)",
     )
+    _add_model(parser, "the checkpoint's task")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
     parser.add_argument(
         "--device", default="cpu", help="torch device to run on, e.g. cpu or cuda:0 (default cpu)"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help=overrides_help)
+
+
+def _add_model(parser: argparse.ArgumentParser, note: str) -> None:
+    """``--model``: a task of the user's own instead of the 2D firefly."""
+    parser.add_argument(
+        "--model",
+        default=None,
+        help=f"a continuous-action TaskModel of your own, as FILE.py:Class or module:Class, "
+        f"built without arguments ({note}; default: the firefly2d task)",
+    )
 
 
 def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
@@ -342,12 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
             "config.yaml, summary.json and logs."
         ),
     )
-    train.add_argument(
-        "--model",
-        default=None,
-        help="a continuous-action TaskModel of your own, as FILE.py:Class or module:Class, "
-        "built without arguments (needs ddpg.warmup_policy=random; default: the firefly2d task)",
-    )
+    _add_model(train, "needs ddpg.warmup_policy=random")
     train.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     train.add_argument("--out", default="runs/train", help="output folder (default runs/train)")
     train.add_argument("--resume", default=None, help="a checkpoint to continue from")

@@ -552,12 +552,13 @@ def _belief_figures(summary: Mapping, beliefs: Mapping[str, np.ndarray], out: Pa
         }
         method = summary.get("primary_method", summary.get("method", ""))
         title = f"{label}: beliefs under θ̂ ({method})"
-        written.append(
-            plot_belief_overhead(
-                arrays, out / f"{label}_beliefs_overhead.png",
-                agent["theta_hat"].get("goal_radius"), distance_unit=distance, title=title,
-            )
-        )  # fmt: skip
+        if summary["state_names"][:2] == ["x", "y"]:  # a position in the plane, seen from above
+            written.append(
+                plot_belief_overhead(
+                    arrays, out / f"{label}_beliefs_overhead.png",
+                    agent["theta_hat"].get("goal_radius"), distance_unit=distance, title=title,
+                )
+            )  # fmt: skip
         written.append(
             plot_belief_time(
                 arrays, summary["state_names"], summary["state_units"],

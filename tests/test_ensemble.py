@@ -1196,3 +1196,38 @@ def test_irc_train_refuses_a_model_it_cannot_train_before_any_work(
     err = capsys.readouterr().err
     assert re.search(message, err), err
     assert not out.exists()
+
+
+def test_irc_simulate_and_fit_take_a_task_named_on_the_command_line(own_task, tmp_path, capsys):
+    """``irc simulate`` and ``irc fit`` with ``--model`` and the task's checkpoint: recordings
+    in the task's own columns, and θ̂ from them (2 agents × 20 trials at one θ*; tolerances:
+    the observation noise within 0.03, the motor noise within 0.02);
+    the belief figures over time only, the overhead view needing a position in the plane."""
+    _, out = own_task
+    common = ["--model", REACH, "--checkpoint", str(out / "checkpoint.pt"), "--quiet"]
+    truth = {"g": 1.3, "obs_sigma": 0.1, "effort_cost": 0.2}
+    settings = [f"theta.{name}={value}" for name, value in truth.items()]
+    recorded = tmp_path / "recorded"
+    argv = ["simulate", *common, "--out", str(recorded), "n_agents=2", "n_trials=20", *settings]
+    assert main(argv) == 0
+    files = [str(recorded / f"agent{i}.csv") for i in range(2)]
+    assert open(files[0]).readline().startswith("trial,time,x,v,a,target_x,theta.g,")
+    fitted = tmp_path / "fitted"
+    assert main(["fit", *files, *common, "--out", str(fitted)]) == 0
+    summary = json.loads((fitted / "summary.json").read_text())
+    assert summary["task"] == "reach_and_hold"
+    for agent in summary["agents"]:
+        assert agent["theta_true"] == pytest.approx({**truth, "sigma_v": 0.05})
+        assert abs(agent["theta_hat"]["obs_sigma"] - truth["obs_sigma"]) < 0.03
+        assert abs(agent["motor_noise"][0] - 0.1) < 0.02
+    figures = {path.name for path in fitted.glob("*.png")}
+    assert {"agent0_beliefs_time.png", "agent1_beliefs_time.png"} <= figures
+    assert not any("overhead" in name for name in figures)
+    capsys.readouterr()
+    # the packaged checkpoint is the firefly's, and a task from a file stays in this process
+    argv = ["fit", *files, "--model", REACH, "--out", str(tmp_path / "none"), "--quiet"]
+    assert main(argv) == 2
+    assert "task is 'firefly2d', expected 'reach_and_hold'" in capsys.readouterr().err
+    assert main([*argv, "--checkpoint", str(out / "checkpoint.pt"), "workers=2"]) == 2
+    assert "--model: a task from a file" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()

@@ -101,14 +101,16 @@ def simulate_recordings(
     device: str = "cpu",
     progress: bool = True,
     task: str = TASK,
+    model: TaskModel | None = None,
 ) -> dict[str, Any]:
     """Simulate ``config.n_agents`` agents and write one recording per agent into ``out``.
 
     Each agent's θ is ``config.theta`` where given and a prior draw (seeded) elsewhere; the
-    world's θ is ``config.task_theta`` over the θ space's default. Returns the ``summary.json``
-    written beside the recordings (the true θ of every file).
+    world's θ is ``config.task_theta`` over the θ space's default. ``model``: a task of the
+    user's own, whose policy ``checkpoint`` holds (``None``: the 2D firefly task). Returns the
+    ``summary.json`` written beside the recordings (the true θ of every file).
     """
-    if task != TASK:
+    if model is None and task != TASK:
         raise ValueError(f"task: recordings are simulated for {TASK!r} only, got {task!r}")
     if file_format not in FORMATS:
         raise ValueError(f"format: expected one of {sorted(FORMATS)}, got {file_format!r}")
@@ -119,7 +121,7 @@ def simulate_recordings(
     out = Path(out)
     with torch_settings(config.threads, True):
         start = time.perf_counter()
-        actor, model, ckpt = load_ensemble_policy(checkpoint)
+        actor, model, ckpt = load_ensemble_policy(checkpoint, model=model)
         actor = actor.to(target)
         space = model.theta_space
         prior = space.sample((config.n_agents,), generator=torch.Generator().manual_seed(seed))
@@ -158,7 +160,7 @@ def simulate_recordings(
                 )
             write_s = time.perf_counter() - start - simulate_s
             summary = {
-                "task": TASK,
+                "task": model.name,
                 "command": "simulate",
                 "seed": seed,
                 "checkpoint": str(ckpt["path"]),
@@ -295,6 +297,7 @@ def fit_recordings(
     seed: int = 0,
     device: str = "cpu",
     progress: bool = True,
+    model: TaskModel | None = None,
 ) -> dict[str, Any]:
     """Fit θ for each recording (one agent per file) and write the results into ``out``.
 
@@ -303,7 +306,8 @@ def fit_recordings(
     same number of trials are fitted in one batched call (at convergence an agent's θ̂ does
     not depend on the others; a fit stopped by ``max_iter`` may end elsewhere). Writes
     ``summary.json``, ``beliefs.npz`` (the agent's belief at every recorded step under θ̂,
-    with the recording's trial numbers) and figures; returns the summary.
+    with the recording's trial numbers) and figures; returns the summary. ``model``: a task of
+    the user's own, whose policy ``checkpoint`` holds (``None``: the 2D firefly task).
     """
     if method not in FIT_METHODS:
         raise ValueError(f"method: expected one of {FIT_METHODS}, got {method!r}")
@@ -319,7 +323,7 @@ def fit_recordings(
             raise ValueError(f"fit: {path} is given twice; expected each recording once")
     out = Path(out)
     with torch_settings(config.threads, True):
-        actor, model, ckpt = load_ensemble_policy(checkpoint)
+        actor, model, ckpt = load_ensemble_policy(checkpoint, model=model)
         actor = actor.to(target)  # whole: calibration's simulations run it as a policy
         space = fit_space(model.theta_space, free, config.theta)
         truths = [_simulated_truth(p, space) for p in paths]
@@ -356,7 +360,7 @@ def fit_recordings(
         _add_calibrated(by_method[name], space, calibration, fits[name], truths)
     primary = "marginal" if method in ("marginal", "both") else "map"
     summary = {
-        "task": TASK,
+        "task": model.name,
         "command": "fit",
         "method": method,
         # the top-level agents, their beliefs and the belief figures are this method's
