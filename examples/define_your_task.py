@@ -65,8 +65,11 @@ that act by it::
 
     python examples/define_your_task.py --out runs/own_task --train-frames 200000  # ~2 min
 
-(or from the command line, ``irc train --model examples/define_your_task.py:ReachModel
-ddpg.warmup_policy=random`` with the settings of :func:`ensemble_config`).
+(or from the command line, with the settings of :func:`ensemble_config`: ``irc train --model
+examples/define_your_task.py:ReachModel ddpg.n_envs=32 ddpg.total_frames=200000
+ddpg.anneal_frames=200000 ddpg.warmup_frames=2048 ddpg.buffer_size=100000
+ddpg.batch_size=256 evaluation.n_theta=16 evaluation.trials_per_theta=8
+evaluation.every=250``).
 
 At seed 0 the learned policy costs 1.23× the controller's over 16 θ (1.00-1.86×). It reads θ
 otherwise than the optimum: its control turns on the effort cost a third as much (0.12 against

@@ -8,6 +8,11 @@ import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from irc_torchrl.envs.model import TaskModel
 
 __all__ = ["main"]
 
@@ -82,12 +87,18 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _task_model(spec: str | None):
-    """The task ``--model`` names, ``FILE.py:Class`` or ``module:Class``, built without
-    arguments (None: none named)."""
-    import importlib
-    import importlib.util
+def _task_file(spec: str) -> bool:
+    """Whether ``--model`` names its task by a file (``FILE.py:Class``), not a module."""
+    return spec.rpartition(":")[0].endswith(".py")
 
+
+def _task_model(spec: str | None) -> TaskModel | None:
+    """The task ``--model`` names, ``FILE.py:Class`` or ``module:Class`` (importable: installed
+    or on the path), built without arguments (None: none named)."""
+    import importlib
+    import inspect
+
+    from irc_torchrl.checkpoint import first_line
     from irc_torchrl.envs.model import TaskModel
 
     if spec is None:
@@ -95,34 +106,58 @@ def _task_model(spec: str | None):
     source, _, name = spec.rpartition(":")
     if not source or not name.isidentifier():
         raise ValueError(f"--model: expected FILE.py:Class or module:Class, got {spec!r}")
-    if source.endswith(".py"):
-        path = Path(source)
-        if not path.is_file():
-            raise FileNotFoundError(f"--model: no file at {path}")
-        found = importlib.util.spec_from_file_location(f"irc_task_{path.stem}", path)
-        module = importlib.util.module_from_spec(found)
-        found.loader.exec_module(module)
-    else:
-        module = importlib.import_module(source)
+    try:
+        if _task_file(spec):
+            module = _task_file_module(Path(source))
+        else:
+            module = importlib.import_module(source)
+    except (ImportError, SyntaxError) as error:
+        raise ValueError(
+            f"--model: cannot import {source} ({first_line(error)}); expected a file or an "
+            "installed module"
+        ) from None
     task = getattr(module, name, None)
     if not (isinstance(task, type) and issubclass(task, TaskModel)):
         if task is None:
             found = "nothing by that name"
+        elif isinstance(task, type):
+            found = f"a {task.__mro__[1].__name__} subclass"
         else:
-            found = f"a {(task.__mro__[1] if isinstance(task, type) else type(task)).__name__}"
-            found += " subclass" if isinstance(task, type) else ""
+            found = f"a {type(task).__name__}"
         raise ValueError(
             f"--model: expected {name} in {source} to be a TaskModel subclass, got {found}"
         )
+    if inspect.isabstract(task):
+        missing = ", ".join(sorted(task.__abstractmethods__))
+        raise ValueError(f"--model: {name} is abstract; expected it to define {missing}")
     try:
-        return task()
+        inspect.signature(task).bind()
     except TypeError as error:
         raise ValueError(f"--model: {name}() must build without arguments ({error})") from None
+    return task()
+
+
+def _task_file_module(path: Path) -> ModuleType:
+    """The module of a task file, registered under its own name (dataclasses, typing and
+    pickling look a class's module up there)."""
+    import importlib.util
+
+    if not path.is_file():
+        raise FileNotFoundError(f"--model: no file at {path}")
+    found = importlib.util.spec_from_file_location(f"irc_task_{path.stem}", path)
+    module = importlib.util.module_from_spec(found)
+    sys.modules[found.name] = module
+    try:
+        found.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[found.name]
+        raise
+    return module
 
 
 def _check_sendable(spec: str | None, field: str, processes: int) -> None:
     """Refuse to send a task read from a file to other processes, which cannot import it."""
-    if spec is not None and ".py:" in spec and processes > 1:
+    if spec is not None and _task_file(spec) and processes > 1:
         raise ValueError(
             f"--model: a task from a file ({spec}) cannot be sent to other processes; "
             f"expected {field}=1 (or the task as module:Class), got {processes}"
@@ -228,7 +263,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     """``irc simulate``, ``irc fit`` and ``irc report``."""
     simulate = commands.add_parser(
         "simulate",
-        help="simulate agents of the 2D task into recording files, with their true θ",
+        help="simulate agents of the 2D task (or --model) into recording files, with their true θ",
         description=(
             "Agents act by a trained θ-conditioned policy plus Gaussian motor noise in a world "
             "with a known θ, one recording file per agent (agent0.csv, ...) in the trajectory "
@@ -256,7 +291,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     simulate.set_defaults(run=_simulate)
     fit = commands.add_parser(
         "fit",
-        help="fit θ with 95%% intervals to recorded trials (one agent per file, 2D task)",
+        help="fit θ with 95%% intervals to recorded trials (one agent per file, 2D task or "
+        "--model)",
         description=(
             "Read recordings (CSV, NPZ, NWB or TensorDict folders; docs/trajectory_schema.md), "
             "fit each agent's θ (Algorithm 2) with 95% intervals from the observed Fisher "
@@ -356,14 +392,14 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(run=_demo)
     train = commands.add_parser(
         "train",
-        help="train one θ-conditioned policy over the θ prior (Algorithm 1, 2D task)",
+        help="train one θ-conditioned policy over the θ prior (Algorithm 1, 2D task or --model)",
         description=(
             "DDPG over the whole θ prior of the 2D firefly task, or of a task of your own "
             "(--model); writes checkpoint.pt (every checkpoint_every updates and at the end), "
             "config.yaml, summary.json and logs."
         ),
     )
-    _add_model(train, "needs ddpg.warmup_policy=random")
+    _add_model(train, "warmed up with random actions by default")
     train.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     train.add_argument("--out", default="runs/train", help="output folder (default runs/train)")
     train.add_argument("--resume", default=None, help="a checkpoint to continue from")

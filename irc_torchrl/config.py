@@ -25,6 +25,7 @@ from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 from irc_torchrl.checks import SEED_LIMIT, check_fields
 from irc_torchrl.checks import positive as _positive
+from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
 from irc_torchrl.modules.likelihood import LAPSE_MAX
@@ -351,12 +352,15 @@ def load_firefly2d_config(
 ) -> Firefly2DConfig:
     """The ensemble-training config: embedded default, then the YAML file, then ``key=value``.
 
-    ``model``: a task of the user's own; its name is the default's task, and the config is
-    checked for it (``None``: the 2D firefly task).
+    ``model``: a task of the user's own; the default then names it as its task and warms up
+    with random actions (the pursuit controller knows the 2D firefly only) (``None``: the 2D
+    firefly task).
     """
     config = Firefly2DConfig()
     if model is not None:
         config.task = model.name
+        if not isinstance(model, Firefly2DModel):
+            config.ddpg.warmup_policy = "random"
     return _update(config, path, overrides).validate(model)
 
 

@@ -298,7 +298,10 @@ def plot_belief_time(
     """Each belief component over time for a few trials: the truth, the mean and its 95% band
     (and, with ``true_mean``, the belief the agent really held: the paper's Fig. 1F)."""
     shown = min(n_trials, arrays["state"].shape[0])
-    fig, axes = plt.subplots(len(names), 1, figsize=(6, 1.6 * len(names) + 0.6), sharex=True)
+    fig, grid = plt.subplots(
+        len(names), 1, figsize=(6, 1.6 * len(names) + 0.6), sharex=True, squeeze=False
+    )
+    axes = grid[:, 0]
     for row in range(shown):
         t, trial = _recorded(arrays, row), _trial_name(arrays, row)
         std = np.sqrt(np.clip(np.diagonal(t["cov"], axis1=-2, axis2=-1), 0, None))
@@ -552,7 +555,8 @@ def _belief_figures(summary: Mapping, beliefs: Mapping[str, np.ndarray], out: Pa
         }
         method = summary.get("primary_method", summary.get("method", ""))
         title = f"{label}: beliefs under θ̂ ({method})"
-        if summary["state_names"][:2] == ["x", "y"]:  # a position in the plane, seen from above
+        planar = summary["state_names"][:2] == ["x", "y"] and arrays["target"].shape[-1] == 2
+        if planar:  # a position in the plane, seen from above
             written.append(
                 plot_belief_overhead(
                     arrays, out / f"{label}_beliefs_overhead.png",

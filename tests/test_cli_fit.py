@@ -535,7 +535,8 @@ def test_help_lists_every_subcommand_with_a_purpose(capsys):
         build_parser().parse_args(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     for line in (
-        "simulate simulate agents of the 2D task into recording files, with their true θ",
+        "simulate simulate agents of the 2D task (or --model) into recording files, with their "
+        "true θ",
         "fit fit θ with 95% intervals to recorded trials",
         "report draw the figures of a run folder (fit, recover, demo or train) as PNG",
         "demo ",
@@ -546,6 +547,7 @@ def test_help_lists_every_subcommand_with_a_purpose(capsys):
         build_parser().parse_args(["fit", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "--method {marginal,map,both}" in text and "--free NAME,NAME" in text
+    assert "--model MODEL" in text
 
 
 def test_nwb_without_pynwb_is_refused_before_simulating(tmp_path, capsys, monkeypatch):

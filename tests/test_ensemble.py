@@ -1082,14 +1082,28 @@ def test_a_task_is_named_by_its_class_unless_it_or_a_base_names_it(reach):
     class Unnamed(TaskModel):  # abstract: its name is read off the class
         pass
 
+    class Below(Unnamed):
+        pass
+
     class Mine(reach.ReachModel):
         def __init__(self) -> None:
             self.name = "mine"
 
     assert Firefly2DModel().name == "firefly2d" and Firefly1DModel().name == "firefly1d"
     assert Narrower().name == "reach_and_hold"
-    assert Unnamed.name == "Unnamed"
+    assert Unnamed.name == "Unnamed" and Below.name == "Below"  # a name given, not taken
     assert Mine().name == "mine" and Mine.name == "reach_and_hold"
+
+
+def test_a_model_on_another_device_than_the_configs_trains_on_a_copy_moved_there():
+    """Its action spec (the actor's and the noise's bounds) moves; the model given stays."""
+    from irc_torchrl.algorithms.ensemble import _on_device
+
+    model = Firefly2DModel()
+    assert _on_device(model, torch.device("cpu")) is model
+    moved = _on_device(model, torch.device("meta"))
+    assert moved.action_spec.device == torch.device("meta") and moved.name == "firefly2d"
+    assert model.action_spec.device == torch.device("cpu")
 
 
 def _with_actions(spec: TensorSpec) -> Callable[[], Firefly2DModel]:
@@ -1125,6 +1139,12 @@ def _with_actions(spec: TensorSpec) -> Callable[[], Firefly2DModel]:
         ),
         ({}, _with_actions(OneHot(3)), "got OneHot of torch.bool, shape \\[3\\]"),
         ({}, lambda: "not a model", "model: expected a TaskModel, got str"),
+        (
+            {},
+            "succeeded [B]",
+            r"model.succeeded: expected None or bool \[2, 1\], as model.stops gives, got "
+            r"torch.bool \[2\]",
+        ),
         ({}, lambda: Firefly2DModel, r"model: got the class Firefly2DModel; pass an instance"),
     ],
 )
@@ -1137,6 +1157,13 @@ def test_an_own_task_the_trainer_cannot_train_is_refused_before_any_work(
     config = reach.ensemble_config(1024, seed=0)
     config.theta_fixed = change.get("theta_fixed", {})
     config.ddpg.warmup_policy = change.get("warmup_policy", "random")
+    if model == "succeeded [B]":
+
+        class Flat(reach.ReachModel):
+            def succeeded(self, state, target, stop, theta):
+                return stop.squeeze(-1)
+
+        model = Flat
     model = reach.ReachModel() if model == "reach" else model()
     with pytest.raises(ValueError, match=message):
         train_ensemble(config, progress=False, model=model)
@@ -1144,8 +1171,9 @@ def test_an_own_task_the_trainer_cannot_train_is_refused_before_any_work(
 
 #: the example's task as ``irc train --model`` names it, and a short run's settings
 REACH = f"{Path(__file__).resolve().parents[1] / 'examples' / 'define_your_task.py'}:ReachModel"
+#: (the default for a task other than the firefly warms up with random actions)
 SHORT = [
-    *("ddpg.warmup_policy=random", "ddpg.warmup_frames=1024"),
+    "ddpg.warmup_frames=1024",
     *("ddpg.n_envs=32", "evaluation.n_theta=4", "evaluation.trials_per_theta=2"),
     *("evaluation.every=20", "logger=none"),
 ]
@@ -1210,6 +1238,7 @@ def test_irc_simulate_and_fit_take_a_task_named_on_the_command_line(own_task, tm
     recorded = tmp_path / "recorded"
     argv = ["simulate", *common, "--out", str(recorded), "n_agents=2", "n_trials=20", *settings]
     assert main(argv) == 0
+    assert json.loads((recorded / "summary.json").read_text())["task"] == "reach_and_hold"
     files = [str(recorded / f"agent{i}.csv") for i in range(2)]
     assert open(files[0]).readline().startswith("trial,time,x,v,a,target_x,theta.g,")
     fitted = tmp_path / "fitted"
@@ -1231,3 +1260,64 @@ def test_irc_simulate_and_fit_take_a_task_named_on_the_command_line(own_task, tm
     assert main([*argv, "--checkpoint", str(out / "checkpoint.pt"), "workers=2"]) == 2
     assert "--model: a task from a file" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
+
+
+#: a task file as users write them (a dataclass under postponed annotations, which looks its
+#: module up by name), with a task needing an argument and an abstract one
+TASK_FILE = """
+from __future__ import annotations
+
+import dataclasses
+
+from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.envs.model import TaskModel
+
+
+@dataclasses.dataclass
+class Settings:
+    reward: float = 5.0
+
+
+class Task(Firefly2DModel):
+    name = "from_file"
+
+    def __init__(self) -> None:
+        super().__init__(reward_value=Settings().reward)
+
+
+class Sized(Firefly2DModel):
+    def __init__(self, size: float) -> None:
+        super().__init__()
+
+
+class Partial(TaskModel):
+    pass
+"""
+
+
+def test_a_task_file_is_imported_as_a_module_of_its_own(tmp_path):
+    from irc_torchrl.cli import _task_model
+
+    (tmp_path / "my_task.py").write_text(TASK_FILE)
+    model = _task_model(f"{tmp_path / 'my_task.py'}:Task")
+    assert (model.name, model.reward_value) == ("from_file", 5.0)
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("my_task.py:Sized", r"--model: Sized\(\) must build without arguments"),
+        ("my_task.py:Partial", "--model: Partial is abstract; expected it to define"),
+        ("no_such_module:Task", "--model: cannot import no_such_module .*expected a file or an"),
+        ("bad.py:Task", "--model: cannot import bad.py .*invalid syntax"),
+    ],
+)
+def test_a_task_that_cannot_be_built_is_refused_naming_the_option(
+    spec, message, tmp_path, monkeypatch, capsys
+):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "my_task.py").write_text(TASK_FILE)
+    (tmp_path / "bad.py").write_text("class Task(:\n")
+    assert main(["train", "--model", spec, "--out", "run", "--quiet"]) == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert not (tmp_path / "run").exists()

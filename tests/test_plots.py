@@ -110,6 +110,19 @@ def test_belief_ellipses_are_95_percent_regions_of_each_steps_position_covarianc
         assert (ax.get_xlabel(), ax.get_ylabel()) == ("x (m)", "y (m)")
 
 
+def test_a_belief_of_one_component_is_drawn_over_time_on_one_panel(drawn):
+    arrays = _beliefs(seed=2)
+    arrays.update(
+        state=arrays["state"][..., :1],
+        mean=arrays["mean"][..., :1],
+        true_mean=arrays["true_mean"][..., :1],
+        cov=arrays["cov"][..., :1, :1],
+    )
+    plots.plot_belief_time(arrays, ["x"], ["m"], "t.png", n_trials=2)
+    (ax,) = drawn[0].axes
+    assert ax.get_ylabel() == "x\n(m)" and len(ax.collections) == 2
+
+
 def test_belief_bands_are_the_mean_plus_minus_1_96_sd_of_each_component(drawn):
     arrays = _beliefs(seed=1)
     plots.plot_belief_time(arrays, STATE, ["m", "m", "rad", "m/s", "rad/s"], "t.png", n_trials=2)

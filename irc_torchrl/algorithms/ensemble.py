@@ -21,6 +21,7 @@ its evaluations score the world's return, and the success rate where the task de
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import time
@@ -367,12 +368,37 @@ def _check_trainable(config: Firefly2DConfig, model: TaskModel) -> None:
             f"actor squashes into it), got {type(spec).__name__} of {spec.dtype}, shape "
             f"{list(spec.shape)}"
         )
-    device = resolve_device(config.device)
-    if torch.device(spec.device or "cpu").type != device.type:
+    theta = model.theta_space.default().expand(2, -1)
+    state, target = model.initial_state(theta, torch.Generator().manual_seed(0))
+    step = torch.zeros(2, 1, dtype=torch.int64)
+    _succeeded(model, state, target, model.stops(spec.zero((2,)), step), theta)
+
+
+def _succeeded(
+    model: TaskModel,
+    state: torch.Tensor,
+    target: torch.Tensor,
+    stop: torch.Tensor,
+    theta: torch.Tensor,
+) -> torch.Tensor | None:
+    """``model.succeeded``, refused unless None or a bool of ``stop``'s shape."""
+    success = model.succeeded(state, target, stop, theta)
+    if success is not None and (success.shape != stop.shape or success.dtype != torch.bool):
         raise ValueError(
-            f"model.action_spec: expected on the config's device {device} (build the model "
-            f"there), got {spec.device}"
+            f"model.succeeded: expected None or bool {list(stop.shape)}, as model.stops gives, "
+            f"got {success.dtype} {list(success.shape)}"
         )
+    return success
+
+
+def _on_device(model: TaskModel, device: torch.device) -> TaskModel:
+    """``model`` with its action spec on ``device`` (a copy where it moves): the actor's
+    squashing and the exploration noise read their bounds from it."""
+    if torch.device(model.action_spec.device or "cpu") == device:
+        return model
+    model = copy.copy(model)
+    model.action_spec = model.action_spec.to(device)
+    return model
 
 
 def _check_model(model: Any) -> TaskModel | None:
@@ -447,10 +473,10 @@ def evaluate_policy(
 
     The world pays its own reward (on the firefly task, the true position inside the goal on
     stopping, minus effort), not the agent's expected one: this is what an experimenter would
-    score. Every call with the
-    same ``seed`` faces the same θ and first targets, and the same noise until a row's trial
-    ends: the rows share one random stream, which that row's reset then moves on, so later
-    noise depends on when the policy stops (a difference of noise, not of bias).
+    score. Every call with the same ``seed`` faces the same θ and first targets, and the same
+    noise until a row's trial ends: the rows share one random stream, which that row's reset
+    then moves on, so later noise depends on when the policy stops (a difference of noise, not
+    of bias).
 
     Returns:
         ``success_rate``, ``mean_return``, ``mean_length`` (steps), and per θ
@@ -464,14 +490,9 @@ def evaluate_policy(
     returns = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1)
     end = rollout[torch.arange(batch, device=last.device), last]
     stop = model.stops(end["action"], end["step"])
-    success = model.succeeded(end["state"], end["target"], stop, end["task_theta"])
+    success = _succeeded(model, end["state"], end["target"], stop, end["task_theta"])
     n_theta = thetas.shape[0]
     if success is not None:
-        if success.shape != stop.shape:
-            raise ValueError(
-                f"model.succeeded: expected {list(stop.shape)} bool, as model.stops gives, "
-                f"got {list(success.shape)}"
-            )
         success = success.squeeze(-1).float()
     return {
         "success_rate": None if success is None else float(success.mean()),
@@ -692,8 +713,9 @@ def train_ensemble(
         progress: show a progress bar with the current success rate (the return, for a task
             without success).
         seed: overrides ``config.seed``.
-        model: a continuous-action task of the user's own, its action spec on the config's
-            device (``None``: the 2D firefly task of ``config``). The config's ``task`` becomes
+        model: a continuous-action task of the user's own (``None``: the 2D firefly task of
+            ``config``); on another device than the config's, a copy gets its action spec
+            moved there. The config's ``task`` becomes
             its :attr:`~irc_torchrl.envs.model.TaskModel.name`, which the checkpoint carries;
             ``theta_fixed`` must be empty and ``ddpg.warmup_policy`` ``"random"`` (the
             pursuit warm-up knows the 2D firefly only). With ``collector_workers > 1`` the
@@ -710,6 +732,7 @@ def train_ensemble(
     if model is not None:
         _check_trainable(config, model)
     device = resolve_device(config.device)
+    model = _on_device(model, device) if model is not None else None
     out = Path(out) if out is not None else None
     with torch_settings(config.threads, config.flush_denormal), torch.random.fork_rng():
         return _train(config, model, device, out, resume, progress)

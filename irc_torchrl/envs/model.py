@@ -49,12 +49,15 @@ class TaskModel(abc.ABC):
     action_names: tuple[str, ...]
     #: names of the target's components, in the state's distance units
     target_names: tuple[str, ...]
-    #: the task's name, which its checkpoints carry (a class that names none: the class's name)
+    #: the task's name, which its checkpoints carry (a class that names none and inherits
+    #: none a base named: the class's name)
     name: str
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
-        if getattr(cls, "name", None) is None:
+        if "name" in cls.__dict__:
+            cls._named = True
+        elif not getattr(cls, "_named", False):  # a name a base gave itself is inherited
             cls.name = cls.__name__
 
     # --- world ---------------------------------------------------------------------------
