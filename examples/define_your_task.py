@@ -66,7 +66,7 @@ that act by it::
     python examples/define_your_task.py --out runs/own_task --train-frames 200000  # ~2 min
 
 (or from the command line, with the settings of :func:`ensemble_config`: ``irc train --model
-examples/define_your_task.py:ReachModel ddpg.n_envs=32 ddpg.total_frames=200000
+examples/define_your_task.py:ReachModel --seed 0 ddpg.n_envs=32 ddpg.total_frames=200000
 ddpg.anneal_frames=200000 ddpg.warmup_frames=2048 ddpg.buffer_size=100000
 ddpg.batch_size=256 evaluation.n_theta=16 evaluation.trials_per_theta=8
 evaluation.every=250``).

@@ -715,11 +715,12 @@ def train_ensemble(
         seed: overrides ``config.seed``.
         model: a continuous-action task of the user's own (``None``: the 2D firefly task of
             ``config``); on another device than the config's, a copy gets its action spec
-            moved there. The config's ``task`` becomes
-            its :attr:`~irc_torchrl.envs.model.TaskModel.name`, which the checkpoint carries;
-            ``theta_fixed`` must be empty and ``ddpg.warmup_policy`` ``"random"`` (the
-            pursuit warm-up knows the 2D firefly only). With ``collector_workers > 1`` the
-            model goes to the collector processes, so its class must be importable there.
+            moved there. The config's ``task`` becomes its
+            :attr:`~irc_torchrl.envs.model.TaskModel.name`, which the checkpoint carries;
+            ``theta_fixed`` must be empty, and ``ddpg.warmup_policy`` ``"random"`` unless the
+            model is the 2D firefly's (the pursuit warm-up knows that task only). With
+            ``collector_workers > 1`` the model goes to the collector processes, so its class
+            must be importable there.
 
     Deterministic for a seed and a single collector process: nothing depends on wall time.
     """
