@@ -15,7 +15,7 @@ import torch
 import yaml
 from tensordict import TensorDict
 from test_checkpoint import tiny
-from test_examples import _load_example
+from test_examples import EXAMPLES, _load_example
 from torchrl.data import Bounded, OneHot, TensorSpec, Unbounded
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 
@@ -1170,7 +1170,7 @@ def test_an_own_task_the_trainer_cannot_train_is_refused_before_any_work(
 
 
 #: the example's task as ``irc train --model`` names it, and a short run's settings
-REACH = f"{Path(__file__).resolve().parents[1] / 'examples' / 'define_your_task.py'}:ReachModel"
+REACH = f"{EXAMPLES / 'define_your_task.py'}:ReachModel"
 #: (the default for a task other than the firefly warms up with random actions)
 SHORT = [
     "ddpg.warmup_frames=1024",
