@@ -51,12 +51,17 @@ def _run_recovery(
     from irc_torchrl.algorithms.recover2d import format_recovery, run_recovery
     from irc_torchrl.config import load_recovery2d_config
 
-    config = load_recovery2d_config(config_path, overrides)
-    summary = run_recovery(config, args.out, show_progress=not args.quiet)
+    spec = getattr(args, "model", None)  # `irc demo` recovers the firefly's agents only
+    model = _task_model(spec)
+    config = load_recovery2d_config(config_path, overrides, model)
+    _check_sendable(spec, "fit.workers", config.fit.workers)
+    summary = run_recovery(config, args.out, show_progress=not args.quiet, model=model)
     print(format_recovery(summary))
+    drawn = any(Path(args.out).glob("beliefs_overhead_*.png"))  # for a position in the plane
+    overhead = "beliefs_overhead_*.png, " if drawn else ""
     print(
         f"wrote {args.out}/: summary.json, config.yaml, trials/ and figures "
-        "(recovery_*.png, beliefs_overhead_*.png, beliefs_time_*.png)"
+        f"(recovery_*.png, {overhead}beliefs_time_*.png)"
     )
     return 0
 
@@ -434,9 +439,13 @@ def build_parser() -> argparse.ArgumentParser:
             "action dimension unrelated to the belief) and the fit hold that rate; with "
             "fit_lapse=true the fit estimates each agent's rate instead, from 0.01. "
             "fit.workers=2 shares the agents' fits among 2 processes (CPU; 1.2–1.3× faster "
-            "on 2 cores; the numbers depend on the count, not on the machine)."
+            "on 2 cores; the numbers depend on the count, not on the machine). --model with "
+            "checkpoint=PATH runs the experiment on a task of your own, its agents acting "
+            "with the policy `irc train --model` learned for it (the mistaken ones in the "
+            "world of its θ space's defaults)."
         ),
     )
+    _add_model(recover, "give its policy as checkpoint=PATH, from `irc train --model`")
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     recover.add_argument(
         "--out", default="runs/recover", help="output folder (default runs/recover)"

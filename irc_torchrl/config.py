@@ -430,9 +430,14 @@ def _yaml(text: str, source: str) -> Any:
 
 
 def load_recovery2d_config(
-    path: str | Path | None = None, overrides: Sequence[str] = ()
+    path: str | Path | None = None, overrides: Sequence[str] = (), model: TaskModel | None = None
 ) -> Recovery2DConfig:
-    """The 2D recovery experiment's config: embedded default, the YAML file, then ``key=value``."""
+    """The 2D recovery experiment's config: embedded default, the YAML file, then ``key=value``.
+
+    ``model``: a task of the user's own; the default then names it as its task (``None``: the
+    2D firefly task).
+    """
     from irc_torchrl.algorithms.recover2d import Recovery2DConfig
 
-    return _update(Recovery2DConfig(), path, overrides).validate()
+    config = Recovery2DConfig() if model is None else Recovery2DConfig(task=model.name)
+    return _update(config, path, overrides).validate(model)

@@ -513,7 +513,7 @@ def _report(
     if trials is not None:
         from irc_torchrl.algorithms.recover2d import belief_figures
 
-        written += belief_figures(trials, summary["methods"], out)
+        written += belief_figures(trials, summary, out)
     if written and summary.get("task") == "firefly2d":
         written += _q_figure(summary, folder, out)
     if not written:

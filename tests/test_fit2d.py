@@ -32,9 +32,7 @@ from irc_torchrl.config import RecordingFitConfig
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
-SMALL = dict(
-    n_prior_agents=2, n_mistaken_agents=1, n_trials=30, seed=3, particles=300, calibrate=0
-)
+SMALL = dict(n_prior_agents=2, n_mistaken_agents=1, n_trials=30, seed=3, particles=300, calibrate=0)
 
 
 @pytest.fixture(scope="module")
@@ -71,9 +69,7 @@ def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, 
         assert (result.log_likelihood >= at_truth - 1e-6).all(), method
 
 
-def test_the_truth_check_scores_the_truth_under_the_fitted_likelihood(
-    recovery, shipped, at_truth
-):
+def test_the_truth_check_scores_the_truth_under_the_fitted_likelihood(recovery, shipped, at_truth):
     # log L(θ̂) − log L(θ*) per agent, both at θ̂'s nuisance, as recomputed here; no fit ends
     # below the truth (each θ̂ maximises its own likelihood), and an exact likelihood's median
     # ratio is half the χ² median with 10 degrees of freedom (8 θ components, 2 motor noises)
@@ -493,6 +489,36 @@ def test_belief_agreement_pools_x_and_y_and_correlates_errors_from_the_true_stat
     assert agreement["belief_error_correlation"] == pytest.approx(0.7325, abs=1e-4)
 
 
+@pytest.mark.parametrize(
+    "units, position, pose",
+    [
+        (("distance", "distance/s"), [0], [0]),  # a point on a line: x alone, both ways
+        (("rad", "distance", "rad/step"), [1], [0, 1]),  # an angle is pose, not position
+        (("rad", "rad/s"), [0], [0]),  # no distance: the pose stands in for the position
+        (("distance/s", "rad/s"), [0, 1], [0, 1]),  # rates alone: all of them
+    ],
+)
+def test_belief_agreement_reads_the_position_and_pose_of_any_task_from_its_units(
+    units, position, pose
+):
+    """Positions are the components in distance units, the pose every one that is not a rate
+    (per second or per step); the firefly's are x, y and x, y, heading (test above)."""
+    generator = torch.Generator().manual_seed(0)
+    state, true, recovered = torch.randn(3, 1, 1, 6, len(units), generator=generator)
+    mask = torch.ones(1, 1, 6, dtype=torch.bool)
+    agreement = belief_agreement(recovered, true, state, mask, units)
+
+    def corr(a: torch.Tensor, b: torch.Tensor) -> float:
+        return float(np.corrcoef(a.flatten().numpy(), b.flatten().numpy())[0, 1])
+
+    assert agreement["position_correlation"] == pytest.approx(
+        corr(recovered[..., position], true[..., position]), abs=1e-6
+    )
+    assert agreement["belief_error_correlation"] == pytest.approx(
+        corr((recovered - state)[..., pose], (true - state)[..., pose]), abs=1e-6
+    )
+
+
 def test_mistaken_agents_live_in_the_default_world_and_prior_agents_in_their_own(shipped):
     """θ* of every agent drawn from the prior by the seed; the first n_prior_agents act in
     a world of their own θ*, the mistaken ones in the task's default world."""
@@ -542,6 +568,7 @@ def test_the_truth_check_counts_every_fit_below_the_truth(monkeypatch):
     """Log-likelihoods −10, −12, −9 at θ̂ against −9, −11, −9.5 at θ*: ratios −1, −1, 0.5 into
     each agent (median −1), two fits below θ*; scoring steps 0.5, −2.5, 1, 3 from θ*: rms
     √(16.5 / 4) = 2.031, half beyond ±1.96; three fitted coordinates: half χ²₃'s median."""
+
     class Loss:
         parameter_names = ["a", "b", "c"]
 

@@ -1,6 +1,7 @@
 """The recovery experiment on the 2D task: simulated agents, both estimators, honest scores.
 
-Agents act with the shipped (or given) θ-conditioned policy plus Gaussian motor noise. Two
+Agents act with the shipped (or given) θ-conditioned policy plus Gaussian motor noise (or, on
+a task of the user's own, with the policy Algorithm 1 learned for it). Two
 groups: agents whose model is right (the world's θ is their own θ*, drawn from the prior) and
 "mistaken" agents, whose θ* (from the prior) differs from the fixed task θ they live in. Every
 θ component and the motor-noise scales are fitted from states and actions alone, by the hard
@@ -14,7 +15,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -64,6 +65,7 @@ from irc_torchrl.data.files import (
     write_text,
 )
 from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
@@ -88,7 +90,11 @@ RECORDED = ("state", "action", "target", "mask", "task_theta")
 
 @dataclass
 class Recovery2DConfig:
-    """``irc recover``: ``n_prior_agents`` right and ``n_mistaken_agents`` mistaken agents."""
+    """``irc recover``: ``n_prior_agents`` right and ``n_mistaken_agents`` mistaken agents.
+
+    ``task`` is the 2D firefly's, or the name of a task of the user's own given as a model
+    (with ``checkpoint`` a policy ``irc train --model`` learned for it).
+    """
 
     task: str = "firefly2d"
     seed: int = 0
@@ -143,18 +149,21 @@ class Recovery2DConfig:
         )
     )
 
-    def validate(self) -> Recovery2DConfig:
-        """Return ``self`` if every field is usable, else raise a one-line error naming it."""
+    def validate(self, model: TaskModel | None = None) -> Recovery2DConfig:
+        """Return ``self`` if every field is usable, else raise a one-line error naming it.
+
+        ``model`` is the task of the user's own the agents act in (``None``: the 2D firefly).
+        """
         check_fields(self)
-        if self.task != "firefly2d":
-            raise ValueError(f"config: task must be 'firefly2d', got {self.task!r}")
+        if self.task != (task := "firefly2d" if model is None else model.name):
+            raise ValueError(f"config: task must be {task!r}, got {self.task!r}")
         for name in ("threads", "n_trials"):
             if getattr(self, name) < 1:
                 raise ValueError(f"config: {name} must be ≥ 1, got {getattr(self, name)}")
         for name in ("particles", "calibrate"):
             if getattr(self, name) < 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
-        check_mixture(Firefly2DModel(), self.components, FINAL_STEPS)
+        check_mixture(model or Firefly2DModel(), self.components, FINAL_STEPS)
         if self.n_prior_agents < 0 or self.n_mistaken_agents < 0:
             raise ValueError("config: n_prior_agents and n_mistaken_agents must be ≥ 0")
         if self.n_prior_agents + self.n_mistaken_agents < 1:
@@ -182,7 +191,7 @@ class Recovery2DConfig:
 
 
 def simulate_recovery_agents(
-    model: Firefly2DModel,
+    model: TaskModel,
     actor: TensorDictSequential,
     config: Recovery2DConfig,
     progress: Callable[[int, int], None] | None = None,
@@ -214,7 +223,7 @@ def simulate_recovery_agents(
 
 
 def predicted_widths(
-    model: Firefly2DModel,
+    model: TaskModel,
     actor: TensorDictSequential,
     n_trials: tuple[int, ...] = (100,),
     n_agents: int = 20,
@@ -230,8 +239,12 @@ def predicted_widths(
     if not n_trials or min(n_trials) < 1:
         raise ValueError(f"n_trials: expected positive trial counts, got {n_trials}")
     config = Recovery2DConfig(
-        seed=seed, n_prior_agents=n_agents, n_mistaken_agents=0, n_trials=max(n_trials)
-    ).validate()
+        task=model.name,
+        seed=seed,
+        n_prior_agents=n_agents,
+        n_mistaken_agents=0,
+        n_trials=max(n_trials),
+    ).validate(model)
     trials, theta, _ = simulate_recovery_agents(model, actor, config)
     action_model = _recovery_action_model(config, actor, model)
     loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
@@ -245,7 +258,7 @@ def predicted_widths(
 
 
 def _recovery_action_model(
-    config: Recovery2DConfig, actor: TensorDictSequential, model: Firefly2DModel
+    config: Recovery2DConfig, actor: TensorDictSequential, model: TaskModel
 ) -> CensoredGaussianActionModel:
     """The action model the recovery fits with: the agents' lapse rate held, or with
     ``fit_lapse`` fitted from where ``irc fit`` starts it (not the agents' own rate)."""
@@ -256,35 +269,51 @@ def _recovery_action_model(
 
 
 def belief_agreement(
-    recovered: torch.Tensor, true: torch.Tensor, state: torch.Tensor, mask: torch.Tensor
+    recovered: torch.Tensor,
+    true: torch.Tensor,
+    state: torch.Tensor,
+    mask: torch.Tensor,
+    state_units: tuple[str, ...] = Firefly2DModel.state_units,
 ) -> dict[str, float]:
     """How well recovered belief means match the agents' own, over recorded steps.
 
-    Returns the correlation of believed positions (x and y pooled), and the correlation of the
-    belief *errors* (belief − true state, position and heading): the part of the belief the
-    states alone do not reveal, the demanding test of a recovered belief.
+    Returns the correlation of believed positions (the components in ``state_units``'
+    "distance", pooled: x and y of the firefly), and the correlation of the belief *errors*
+    (belief − true state) over the components that are not rates (position and heading): the
+    part of the belief the states alone do not reveal, the demanding test of a recovered
+    belief. A state with no distance uses its non-rates for both, one of rates alone all.
     """
+    rates = [unit.endswith(("/s", "/step")) for unit in state_units]
+    pose = [i for i, rate in enumerate(rates) if not rate] or list(range(len(rates)))
+    position = [i for i, unit in enumerate(state_units) if unit == "distance"] or pose
     rec, tru, st = recovered[mask], true[mask].to(recovered.dtype), state[mask].to(recovered.dtype)
 
     def corr(a: torch.Tensor, b: torch.Tensor) -> float:
         a, b = a - a.mean(), b - b.mean()
         return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-300))
 
-    position = corr(rec[:, :2].reshape(-1), tru[:, :2].reshape(-1))
-    error = corr((rec - st)[:, :3].reshape(-1), (tru - st)[:, :3].reshape(-1))
-    return {"position_correlation": position, "belief_error_correlation": error}
+    return {
+        "position_correlation": corr(rec[:, position].reshape(-1), tru[:, position].reshape(-1)),
+        "belief_error_correlation": corr(
+            (rec - st)[:, pose].reshape(-1), (tru - st)[:, pose].reshape(-1)
+        ),
+    }
 
 
 def recover_firefly2d(
-    config: Recovery2DConfig, progress: Callable[[str, int, int], None] | None = None
+    config: Recovery2DConfig,
+    progress: Callable[[str, int, int], None] | None = None,
+    model: TaskModel | None = None,
 ) -> tuple[TensorDict, dict, dict[str, FitResult]]:
     """Simulate, fit with every configured estimator and score: ``(trials, summary, fits)``.
 
     ``trials`` holds the simulated data with the truth (``theta``, ``belief``) and, per method,
-    the recovered belief under ``(method, "belief")``.
+    the recovered belief under ``(method, "belief")``. ``model``: a task of the user's own,
+    whose checkpoint ``config.checkpoint`` names (``None``: the 2D firefly).
     """
-    config.validate()
-    actor, model, _ = load_ensemble_policy(config.checkpoint, resolve_device(config.device))
+    config.validate(model)
+    device = resolve_device(config.device)
+    actor, model, _ = load_ensemble_policy(config.checkpoint, device, model)
     space = model.theta_space
     action_model = _recovery_action_model(config, actor, model)
     if config.fit.covariance == "sandwich":
@@ -305,6 +334,10 @@ def recover_firefly2d(
         "n_trials": config.n_trials,
         "mean_trial_length": float(held["mask"].sum(-1).double().mean()),
         "mistaken": mistaken.tolist(),
+        "units": space.units,
+        "state_names": list(model.state_names),
+        "state_units": list(model.state_units),
+        "dt": model.dt,
         "methods": {},
     }
     fitted = _fit_methods(config, model, action_model, held, progress)
@@ -323,7 +356,11 @@ def recover_firefly2d(
             "by_group": groups,
             "agents": scored["agents"],
             "beliefs": belief_agreement(
-                beliefs["belief", "mean"], trials["belief", "mean"], held["state"], held["mask"]
+                beliefs["belief", "mean"],
+                trials["belief", "mean"],
+                held["state"],
+                held["mask"],
+                model.state_units,
             ),
             "converged_fraction": float(result.converged.double().mean()),
             "motor_noise_hat": statistics.median(
@@ -368,7 +405,7 @@ class _Fitted(NamedTuple):
 
 def _fit_methods(
     config: Recovery2DConfig,
-    model: Firefly2DModel,
+    model: TaskModel,
     action_model: CensoredGaussianActionModel,
     held: TensorDict,
     progress: Callable[[str, int, int], None] | None = None,
@@ -403,7 +440,7 @@ def _fit_methods(
 
 def _calibrate(
     config: Recovery2DConfig,
-    model: Firefly2DModel,
+    model: TaskModel,
     actor: TensorDictSequential,
     action_model: CensoredGaussianActionModel,
     held: TensorDict,
@@ -499,9 +536,15 @@ def _particle_check(
 DEMO_OVERRIDES = ("n_prior_agents=2", "n_mistaken_agents=1", "n_trials=40", "calibrate=0")
 
 
-def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool = True) -> dict:
-    """Run :func:`recover_firefly2d` into ``out``: ``config.yaml``, ``summary.json``,
-    ``trials/`` (the simulated data with truth and recovered beliefs) and figures."""
+def run_recovery(
+    config: Recovery2DConfig,
+    out: str | Path,
+    show_progress: bool = True,
+    model: TaskModel | None = None,
+) -> dict:
+    """Run :func:`recover_firefly2d` (on ``model``'s task where given) into ``out``:
+    ``config.yaml``, ``summary.json``, ``trials/`` (the simulated data with truth and
+    recovered beliefs) and figures."""
     out = Path(out)
     with torch_settings(config.threads, True):
         bars: dict[str, tqdm] = {}
@@ -512,7 +555,7 @@ def run_recovery(config: Recovery2DConfig, out: str | Path, show_progress: bool 
                 bars[method] = tqdm(total=n, desc=desc, disable=not show_progress)
             bars[method].update(1)
 
-        trials, summary, _ = recover_firefly2d(config, progress)
+        trials, summary, _ = recover_firefly2d(config, progress, model)
         for bar in bars.values():
             bar.close()
     # written once the run has worked: a refused checkpoint or config leaves no folder behind
@@ -528,32 +571,37 @@ def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
     write_json(out / "summary.json", {"command": "recover", **summary})
     with atomic_dir(out / "trials") as folder:
         trials.memmap(folder)
-    units = Firefly2DModel().theta_space.units
+    units = summary.get("units") or Firefly2DModel().theta_space.units
     written = [
         plot_recovery(entry, out / f"recovery_{method}.png", title=method, units=units)
         for method, entry in summary["methods"].items()
     ]
-    written += belief_figures(trials, summary["methods"], out)
+    written += belief_figures(trials, summary, out)
     if earlier is not None:  # an earlier recovery's figures this one did not draw again
         kinds = ("recovery", "beliefs_overhead", "beliefs_time")
         figures = [f"{kind}_{method}.png" for kind in kinds for method in METHODS]
         remove_stale(out, figures, {path.name for path in written})
 
 
-def belief_figures(trials: TensorDict, methods: Iterable[str], out: Path) -> list[Path]:
-    """Agent 0's beliefs recovered by each method against its own, overhead and over time (the
-    paper's Fig. 1E and 1F), into ``out``; ``irc report`` redraws them from ``trials/``."""
-    model = Firefly2DModel()
+def belief_figures(trials: TensorDict, summary: Mapping, out: Path) -> list[Path]:
+    """Agent 0's beliefs recovered by each of ``summary``'s methods against its own, over time
+    and, for a position in the plane, overhead (the paper's Fig. 1F and 1E), into ``out``;
+    ``irc report`` redraws them from ``trials/``. A summary naming no state (written before
+    they did) is the 2D firefly's."""
+    firefly = Firefly2DModel
+    names = tuple(summary.get("state_names", firefly.state_names))
+    units = tuple(summary.get("state_units", firefly.state_units))
+    dt = summary.get("dt", firefly.dt)
+    planar = names[:2] == ("x", "y") and trials["target"].shape[-1] == 2
     written = []
-    for method in methods:
-        arrays = _belief_arrays(trials, method, agent=0, dt=model.dt)
+    for method in summary["methods"]:
+        arrays = _belief_arrays(trials, method, agent=0, dt=dt)
         title = f"agent 0: beliefs recovered by {method} vs the agent's own"
-        overhead = out / f"beliefs_overhead_{method}.png"
+        if planar:
+            overhead = out / f"beliefs_overhead_{method}.png"
+            written.append(plot_belief_overhead(arrays, overhead, title=title))
         timeline = out / f"beliefs_time_{method}.png"
-        written += [
-            plot_belief_overhead(arrays, overhead, title=title),
-            plot_belief_time(arrays, model.state_names, model.state_units, timeline, title=title),
-        ]
+        written.append(plot_belief_time(arrays, names, units, timeline, title=title))
     return written
 
 
