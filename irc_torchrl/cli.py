@@ -40,7 +40,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _recover(args: argparse.Namespace) -> int:
-    given = {"seed": args.seed, "device": args.device}
+    given = {"seed": args.seed, "device": args.device, "checkpoint": args.checkpoint}
     overrides = [*args.overrides, *(f"{k}={v}" for k, v in given.items() if v is not None)]
     return _run_recovery(args.config, overrides, args)
 
@@ -54,6 +54,11 @@ def _run_recovery(
     spec = getattr(args, "model", None)  # `irc demo` recovers the firefly's agents only
     model = _task_model(spec)
     config = load_recovery2d_config(config_path, overrides, model)
+    if model is not None and config.checkpoint == "firefly2d" != model.name:
+        raise ValueError(
+            f"--checkpoint: expected the policy `irc train --model` learned for {model.name!r} "
+            "(a file), got the packaged firefly2d"
+        )
     _check_sendable(spec, "fit.workers", config.fit.workers)
     summary = run_recovery(config, args.out, show_progress=not args.quiet, model=model)
     print(format_recovery(summary))
@@ -421,7 +426,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(run=_train)
     recover = commands.add_parser(
         "recover",
-        help="simulate 2D agents with known θ*, fit them by both estimators, score the intervals",
+        help="simulate 2D agents (or --model's) with known θ*, fit them by both estimators, "
+        "score the intervals",
         description=(
             "The recovery experiment on the 2D task: n_prior_agents agents whose model is right "
             "and n_mistaken_agents living in the default world with another θ, acting with the "
@@ -440,17 +446,23 @@ def build_parser() -> argparse.ArgumentParser:
             "fit_lapse=true the fit estimates each agent's rate instead, from 0.01. "
             "fit.workers=2 shares the agents' fits among 2 processes (CPU; 1.2–1.3× faster "
             "on 2 cores; the numbers depend on the count, not on the machine). --model with "
-            "checkpoint=PATH runs the experiment on a task of your own, its agents acting "
+            "--checkpoint runs the experiment on a task of your own, its agents acting "
             "with the policy `irc train --model` learned for it (the mistaken ones in the "
             "world of its θ space's defaults)."
         ),
     )
-    _add_model(recover, "give its policy as checkpoint=PATH, from `irc train --model`")
+    _add_model(recover, "with --checkpoint, its policy from `irc train --model`")
     recover.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     recover.add_argument(
         "--out", default="runs/recover", help="output folder (default runs/recover)"
     )
     recover.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    recover.add_argument(
+        "--checkpoint",
+        default=None,
+        help="the agents' policy: a checkpoint file of `irc train`, or the name of a packaged "
+        "one (default: the config's, the packaged firefly2d)",
+    )
     recover.add_argument(
         "--device",
         default=None,
@@ -496,7 +508,11 @@ def _check_arguments(args: argparse.Namespace) -> None:
 
 
 #: the options that set a key of their command's config (``--seed 3`` sets ``seed=3``)
-OPTION_SETTINGS = {"demo": ("seed",), "recover": ("seed", "device"), "train": ("seed", "device")}
+OPTION_SETTINGS = {
+    "demo": ("seed",),
+    "recover": ("seed", "device", "checkpoint"),
+    "train": ("seed", "device"),
+}
 
 
 def _check_settings_once(args: argparse.Namespace) -> None:

@@ -511,9 +511,9 @@ def _report(
     if figures is not None and summary.get("task") == "firefly1d":
         written += demo_figures(figures, out)
     if trials is not None:
-        from irc_torchrl.algorithms.recover2d import belief_figures
+        from irc_torchrl.algorithms.recover2d import belief_figures, state_layout
 
-        written += belief_figures(trials, summary, out)
+        written += belief_figures(trials, summary["methods"], out, **state_layout(summary))
     if written and summary.get("task") == "firefly2d":
         written += _q_figure(summary, folder, out)
     if not written:

@@ -43,9 +43,9 @@ def test_each_option_reaches_the_run_it_sets(monkeypatch, tmp_path):
         monkeypatch, demo, "run_demo", ["demo", "--seed", "7", "--out", out]
     )
     assert (config.seed, str(where)) == (7, out)
-    argv = ["recover", "--seed", "8", "--device", "cpu:0", "--out", out]
+    argv = ["recover", "--seed", "8", "--device", "cpu:0", "--checkpoint", "a.pt", "--out", out]
     (config, _), _ = _handed(monkeypatch, recover2d, "run_recovery", argv)
-    assert (config.seed, config.device) == (8, "cpu:0")
+    assert (config.seed, config.device, config.checkpoint) == (8, "cpu:0", "a.pt")
     argv = ["train", "--seed", "9", "--device", "cpu:0", "--out", out]
     (config,), kwargs = _handed(monkeypatch, ensemble, "train_ensemble", argv)
     assert (kwargs["seed"], config.device, kwargs["out"]) == (9, "cpu:0", out)

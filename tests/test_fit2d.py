@@ -495,6 +495,7 @@ def test_belief_agreement_pools_x_and_y_and_correlates_errors_from_the_true_stat
         (("distance", "distance/s"), [0], [0]),  # a point on a line: x alone, both ways
         (("rad", "distance", "rad/step"), [1], [0, 1]),  # an angle is pose, not position
         (("rad", "rad/s"), [0], [0]),  # no distance: the pose stands in for the position
+        (("distance", "distance/s²"), [0], [0]),  # an acceleration is a rate too
         (("distance/s", "rad/s"), [0, 1], [0, 1]),  # rates alone: all of them
     ],
 )
@@ -502,11 +503,13 @@ def test_belief_agreement_reads_the_position_and_pose_of_any_task_from_its_units
     units, position, pose
 ):
     """Positions are the components in distance units, the pose every one that is not a rate
-    (per second or per step); the firefly's are x, y and x, y, heading (test above)."""
+    (per second or per step); the firefly's are x, y and x, y, heading (test above). Each
+    component's error correlation is reported too, rates included."""
     generator = torch.Generator().manual_seed(0)
     state, true, recovered = torch.randn(3, 1, 1, 6, len(units), generator=generator)
     mask = torch.ones(1, 1, 6, dtype=torch.bool)
-    agreement = belief_agreement(recovered, true, state, mask, units)
+    names = tuple(f"s{i}" for i in range(len(units)))
+    agreement = belief_agreement(recovered, true, state, mask, names, units)
 
     def corr(a: torch.Tensor, b: torch.Tensor) -> float:
         return float(np.corrcoef(a.flatten().numpy(), b.flatten().numpy())[0, 1])
@@ -517,6 +520,11 @@ def test_belief_agreement_reads_the_position_and_pose_of_any_task_from_its_units
     assert agreement["belief_error_correlation"] == pytest.approx(
         corr((recovered - state)[..., pose], (true - state)[..., pose]), abs=1e-6
     )
+    by_component = agreement["belief_error_by_component"]
+    assert list(by_component) == list(names)
+    for i, name in enumerate(names):
+        expected = corr((recovered - state)[..., i], (true - state)[..., i])
+        assert by_component[name] == pytest.approx(expected, abs=1e-6)
 
 
 def test_mistaken_agents_live_in_the_default_world_and_prior_agents_in_their_own(shipped):

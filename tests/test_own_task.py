@@ -454,21 +454,18 @@ def test_a_task_that_cannot_be_built_is_refused_naming_the_option(
 
 # --- the recovery experiment on a task of the user's own -----------------------------------
 
-#: ``irc recover``'s agents made few and short (3 agents × 20 trials, no calibration, one
-#: thread: about 20 s)
-SMALL_RECOVERY = [
-    *("n_prior_agents=2", "n_mistaken_agents=1", "n_trials=20", "calibrate=0", "threads=1"),
-]
+#: ``irc recover``'s agents made few and short (3 agents × 20 trials, one thread)
+SMALL_RECOVERY = ["n_prior_agents=2", "n_mistaken_agents=1", "n_trials=20", "threads=1"]
 
 
 @pytest.fixture(scope="module")
 def own_recovery(own_task, tmp_path_factory):
-    """``irc recover --model`` on the example's task with its short run's policy."""
+    """``irc recover --model`` on the example's task with its short run's policy, calibrated by
+    one simulated dataset per agent (about 35 s)."""
     _, trained = own_task
     out = tmp_path_factory.mktemp("own_recovery")
-    checkpoint = f"checkpoint={trained / 'checkpoint.pt'}"
-    argv = ["recover", "--model", REACH, "--out", str(out), "--quiet", checkpoint]
-    assert main([*argv, *SMALL_RECOVERY]) == 0
+    argv = ["recover", "--model", REACH, "--checkpoint", str(trained / "checkpoint.pt")]
+    assert main([*argv, "--out", str(out), "--quiet", *SMALL_RECOVERY, "calibrate=1"]) == 0
     return json.loads((out / "summary.json").read_text()), out
 
 
@@ -480,22 +477,33 @@ def test_irc_recover_runs_the_recovery_experiment_on_a_task_named_on_the_command
     summary carries the task's θ units and state; marginal's intervals hold every agent's θ*
     (measured: 9 of 9), its observation noises lie within 0.03 (measured 0.025) and its motor
     noise within 0.01 (measured 0.098 for 0.1; map's 0.111), and it recovers the agents' own
-    belief errors (the part of the belief the states do not reveal) at r ≥ 0.9 (measured
-    0.942), where map, blind to the agents' observation noise, stays below 0.5 (0.176)."""
+    belief errors (the part of the belief the states do not reveal) in position at r ≥ 0.9
+    (measured 0.942), where map, blind to the agents' observation noise, stays below 0.5
+    (0.176), and in velocity at r ≥ 0.8; the calibration's intervals hold each θ̂."""
     summary, _ = own_recovery
     assert summary["task"] == "reach_and_hold"
     assert summary["mistaken"] == [False, False, True]
     assert (summary["state_names"], summary["state_units"]) == (["x", "v"], list(STATE_UNITS))
     assert summary["units"] == reach.reach_theta_space().units
     marginal, map_ = summary["methods"]["marginal"], summary["methods"]["map"]
+    free = ("g", "obs_sigma", "effort_cost")
     for agent in marginal["agents"]:
-        for name in ("g", "obs_sigma", "effort_cost"):
+        for name in free:
             truth = agent["theta_true"][name]
             assert agent["ci_low"][name] <= truth <= agent["ci_high"][name], (name, agent)
         assert abs(agent["theta_hat"]["obs_sigma"] - agent["theta_true"]["obs_sigma"]) < 0.03
     assert abs(marginal["motor_noise_hat"] - 0.1) < 0.01 < map_["motor_noise_hat"] - 0.1
-    assert marginal["beliefs"]["belief_error_correlation"] >= 0.9
+    beliefs = marginal["beliefs"]
+    assert beliefs["belief_error_correlation"] == beliefs["belief_error_by_component"]["x"]
+    assert beliefs["belief_error_correlation"] >= 0.9
     assert map_["beliefs"]["belief_error_correlation"] < 0.5
+    assert beliefs["belief_error_by_component"]["v"] >= 0.8
+    calibrated = marginal["calibrated"]
+    assert set(calibrated["parameters"]) == set(free)
+    for agent, fitted in zip(calibrated["agents"], marginal["agents"], strict=True):
+        for name in free:
+            theta_hat = fitted["theta_hat"][name]
+            assert agent["ci_low"][name] <= theta_hat <= agent["ci_high"][name], (name, agent)
 
 
 #: the example task's state units (x, v)
@@ -524,19 +532,20 @@ def test_an_own_tasks_recovery_draws_its_beliefs_over_time_and_report_redraws_th
 @pytest.mark.parametrize(
     "extra, message",
     [
-        ([], "task is 'firefly2d', expected 'reach_and_hold'"),
+        ([], "--checkpoint: expected the policy `irc train --model` learned for 'reach_and_hold'"),
         (
             ["task=firefly2d", "CHECKPOINT"],
-            "config: task must be 'reach_and_hold', got 'firefly2d'",
+            "config: task must be the model's, 'reach_and_hold', got 'firefly2d'",
         ),
         (["fit.workers=2", "CHECKPOINT"], "--model: a task from a file .* cannot be sent"),
+        (["--checkpoint", "a.pt", "CHECKPOINT"], "checkpoint: given twice"),
     ],
 )
 def test_irc_recover_refuses_an_own_task_it_cannot_run_before_any_work(
     own_task, extra, message, tmp_path, capsys
 ):
-    """The packaged checkpoint is the firefly's, a config naming another task is refused, and a
-    task from a file stays in this process."""
+    """The packaged checkpoint is the firefly's, a config naming another task is refused, a
+    task from a file stays in this process, and the checkpoint is given once."""
     _, trained = own_task
     checkpoint = f"checkpoint={trained / 'checkpoint.pt'}"
     extra = [checkpoint if item == "CHECKPOINT" else item for item in extra]
@@ -546,6 +555,18 @@ def test_irc_recover_refuses_an_own_task_it_cannot_run_before_any_work(
     err = capsys.readouterr().err
     assert re.search(message, err), err
     assert not out.exists()
+
+
+def test_an_own_tasks_recovery_config_without_its_model_is_refused_naming_the_option(
+    own_recovery, tmp_path, capsys
+):
+    """Rerunning a recovery of an own task from its config.yaml needs the task again."""
+    _, out = own_recovery
+    argv = ["recover", "--config", str(out / "config.yaml"), "--out", str(tmp_path / "run")]
+    assert main([*argv, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "task must be 'firefly2d' (a task of your own is given as a model, --model)" in err
+    assert not (tmp_path / "run").exists()
 
 
 def test_predicted_widths_narrow_with_the_trials_of_an_own_task(reach, own_task):

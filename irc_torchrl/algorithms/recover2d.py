@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -81,6 +81,7 @@ __all__ = [
     "predicted_widths",
     "recover_firefly2d",
     "run_recovery",
+    "state_layout",
     "write_recovery",
 ]
 
@@ -155,8 +156,13 @@ class Recovery2DConfig:
         ``model`` is the task of the user's own the agents act in (``None``: the 2D firefly).
         """
         check_fields(self)
-        if self.task != (task := "firefly2d" if model is None else model.name):
-            raise ValueError(f"config: task must be {task!r}, got {self.task!r}")
+        if model is None and self.task != "firefly2d":
+            raise ValueError(
+                "config: task must be 'firefly2d' (a task of your own is given as a model, "
+                f"--model), got {self.task!r}"
+            )
+        if model is not None and self.task != model.name:
+            raise ValueError(f"config: task must be the model's, {model.name!r}, got {self.task!r}")
         for name in ("threads", "n_trials"):
             if getattr(self, name) < 1:
                 raise ValueError(f"config: {name} must be ≥ 1, got {getattr(self, name)}")
@@ -273,8 +279,9 @@ def belief_agreement(
     true: torch.Tensor,
     state: torch.Tensor,
     mask: torch.Tensor,
+    state_names: tuple[str, ...] = Firefly2DModel.state_names,
     state_units: tuple[str, ...] = Firefly2DModel.state_units,
-) -> dict[str, float]:
+) -> dict:
     """How well recovered belief means match the agents' own, over recorded steps.
 
     Returns the correlation of believed positions (the components in ``state_units``'
@@ -282,8 +289,9 @@ def belief_agreement(
     (belief − true state) over the components that are not rates (position and heading): the
     part of the belief the states alone do not reveal, the demanding test of a recovered
     belief. A state with no distance uses its non-rates for both, one of rates alone all.
+    ``belief_error_by_component``: that correlation for each component, rates included.
     """
-    rates = [unit.endswith(("/s", "/step")) for unit in state_units]
+    rates = [any(per in unit for per in ("/s", "/step")) for unit in state_units]
     pose = [i for i, rate in enumerate(rates) if not rate] or list(range(len(rates)))
     position = [i for i, unit in enumerate(state_units) if unit == "distance"] or pose
     rec, tru, st = recovered[mask], true[mask].to(recovered.dtype), state[mask].to(recovered.dtype)
@@ -292,11 +300,13 @@ def belief_agreement(
         a, b = a - a.mean(), b - b.mean()
         return float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-300))
 
+    errors = rec - st, tru - st
     return {
         "position_correlation": corr(rec[:, position].reshape(-1), tru[:, position].reshape(-1)),
-        "belief_error_correlation": corr(
-            (rec - st)[:, pose].reshape(-1), (tru - st)[:, pose].reshape(-1)
-        ),
+        "belief_error_correlation": corr(*(e[:, pose].reshape(-1) for e in errors)),
+        "belief_error_by_component": {
+            name: corr(*(e[:, i] for e in errors)) for i, name in enumerate(state_names)
+        },
     }
 
 
@@ -360,6 +370,7 @@ def recover_firefly2d(
                 trials["belief", "mean"],
                 held["state"],
                 held["mask"],
+                model.state_names,
                 model.state_units,
             ),
             "converged_fraction": float(result.converged.double().mean()),
@@ -576,32 +587,46 @@ def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
         plot_recovery(entry, out / f"recovery_{method}.png", title=method, units=units)
         for method, entry in summary["methods"].items()
     ]
-    written += belief_figures(trials, summary, out)
+    written += belief_figures(trials, summary["methods"], out, **state_layout(summary))
     if earlier is not None:  # an earlier recovery's figures this one did not draw again
         kinds = ("recovery", "beliefs_overhead", "beliefs_time")
         figures = [f"{kind}_{method}.png" for kind in kinds for method in METHODS]
         remove_stale(out, figures, {path.name for path in written})
 
 
-def belief_figures(trials: TensorDict, summary: Mapping, out: Path) -> list[Path]:
-    """Agent 0's beliefs recovered by each of ``summary``'s methods against its own, over time
-    and, for a position in the plane, overhead (the paper's Fig. 1F and 1E), into ``out``;
-    ``irc report`` redraws them from ``trials/``. A summary naming no state (written before
-    they did) is the 2D firefly's."""
-    firefly = Firefly2DModel
-    names = tuple(summary.get("state_names", firefly.state_names))
-    units = tuple(summary.get("state_units", firefly.state_units))
-    dt = summary.get("dt", firefly.dt)
-    planar = names[:2] == ("x", "y") and trials["target"].shape[-1] == 2
+def state_layout(summary: Mapping) -> dict:
+    """The names and units of a recovery summary's state and its time step, as
+    :func:`belief_figures` takes them; a summary naming none (written before they did) is the
+    2D firefly's."""
+    return {
+        "state_names": tuple(summary.get("state_names", Firefly2DModel.state_names)),
+        "state_units": tuple(summary.get("state_units", Firefly2DModel.state_units)),
+        "dt": summary.get("dt", Firefly2DModel.dt),
+    }
+
+
+def belief_figures(
+    trials: TensorDict,
+    methods: Iterable[str],
+    out: Path,
+    state_names: tuple[str, ...] = Firefly2DModel.state_names,
+    state_units: tuple[str, ...] = Firefly2DModel.state_units,
+    dt: float = Firefly2DModel.dt,
+) -> list[Path]:
+    """Agent 0's beliefs recovered by each method against its own, over time and, for a
+    position in the plane, overhead (the paper's Fig. 1F and 1E), into ``out``; ``irc
+    report`` redraws them from ``trials/``. The state's names and units default to the 2D
+    firefly's."""
+    planar = state_names[:2] == ("x", "y") and trials["target"].shape[-1] == 2
     written = []
-    for method in summary["methods"]:
+    for method in methods:
         arrays = _belief_arrays(trials, method, agent=0, dt=dt)
         title = f"agent 0: beliefs recovered by {method} vs the agent's own"
         if planar:
             overhead = out / f"beliefs_overhead_{method}.png"
             written.append(plot_belief_overhead(arrays, overhead, title=title))
         timeline = out / f"beliefs_time_{method}.png"
-        written.append(plot_belief_time(arrays, names, units, timeline, title=title))
+        written.append(plot_belief_time(arrays, state_names, state_units, timeline, title=title))
     return written
 
 
@@ -631,6 +656,10 @@ def format_recovery(summary: dict) -> str:
             f"belief position r {beliefs['position_correlation']:.3f}, "
             f"belief error r {beliefs['belief_error_correlation']:.3f}"
         )
+        by_component = beliefs.get("belief_error_by_component")
+        if by_component:
+            rows = ", ".join(f"{name} {r:.3f}" for name, r in by_component.items())
+            lines.append(f"  belief error r by component: {rows}")
         if entry.get("lapse_fitted"):
             lines.append(
                 f"  fitted medians: motor noise {entry['motor_noise_hat']:.3f}, "
