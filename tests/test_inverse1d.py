@@ -10,8 +10,10 @@ from scipy import stats
 
 import irc_torchrl.algorithms.fit as fit_module
 from irc_torchrl.algorithms.fit import (
+    BOUND,
     _behind_best,
     _bfgs_update,
+    _profile_start,
     _screen_starts,
     fit_theta,
     profile_intervals,
@@ -54,8 +56,9 @@ def small_trials(firefly1d_model, trained_q, agents, space):
 
 
 def make_loss(model, q, n_agents, world="known"):
-    return InverseRationalLoss(model, BoltzmannActionModel(q, TEMPERATURE), n_agents=n_agents,
-                               world=world)
+    return InverseRationalLoss(
+        model, BoltzmannActionModel(q, TEMPERATURE), n_agents=n_agents, world=world
+    )
 
 
 # --- simulation ---------------------------------------------------------------------------
@@ -88,10 +91,12 @@ def test_simulated_trials_layout(firefly1d_model, small_trials, agents, space):
 
 
 def test_first_trial_mask():
-    done = torch.tensor([[False, True, False, True], [False, False, False, False],
-                         [True, True, False, False]])
-    expected = torch.tensor([[True, True, False, False], [True, True, True, True],
-                             [True, False, False, False]])
+    done = torch.tensor(
+        [[False, True, False, True], [False, False, False, False], [True, True, False, False]]
+    )
+    expected = torch.tensor(
+        [[True, True, False, False], [True, True, True, True], [True, False, False, False]]
+    )
     assert torch.equal(first_trial_mask(done), expected)
 
 
@@ -153,23 +158,28 @@ def test_each_agent_walks_in_its_own_world_when_task_theta_is_given_per_agent():
 
 
 # --- the likelihood -------------------------------------------------------------------------
-def test_likelihood_beliefs_equal_the_simulated_beliefs(firefly1d_model, trained_q, small_trials,
-                                                       agents):
+def test_likelihood_beliefs_equal_the_simulated_beliefs(
+    firefly1d_model, trained_q, small_trials, agents
+):
     loss = make_loss(firefly1d_model, trained_q, 3)
     trials = small_trials
     theta_b = agents.double().unsqueeze(1).expand(3, 8, -1)
-    mean, cov = loss.beliefs(theta_b, trials["state"].double(), trials["action"],
-                             trials["target"][:, :, 0].double())
+    mean, cov = loss.beliefs(
+        theta_b, trials["state"].double(), trials["action"], trials["target"][:, :, 0].double()
+    )
     mask = trials["mask"]
-    torch.testing.assert_close(mean[mask], trials["belief", "mean"][mask].double(),
-                               atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(cov[mask], trials["belief", "cov"][mask].double(),
-                               atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(
+        mean[mask], trials["belief", "mean"][mask].double(), atol=1e-5, rtol=1e-5
+    )
+    torch.testing.assert_close(
+        cov[mask], trials["belief", "cov"][mask].double(), atol=1e-6, rtol=1e-5
+    )
 
 
 @pytest.mark.parametrize("world", ["known", "shared"])
-def test_log_likelihood_gradient_matches_finite_differences(firefly1d_model, trained_q,
-                                                            small_trials, agents, world):
+def test_log_likelihood_gradient_matches_finite_differences(
+    firefly1d_model, trained_q, small_trials, agents, world
+):
     """∂ log L / ∂(g_a, log σ₀, log τ) in float64 against central differences (h = 1e-6)."""
     loss = make_loss(firefly1d_model, trained_q, 3, world)
     theta = agents.double().clone()
@@ -197,16 +207,19 @@ def test_log_likelihood_gradient_matches_finite_differences(firefly1d_model, tra
         assert g.abs().max() > 1e-3  # a real dependence, not a vacuous match
 
 
-def test_shared_world_adds_the_gaussian_transition_density(firefly1d_model, trained_q,
-                                                           small_trials, agents):
+def test_shared_world_adds_the_gaussian_transition_density(
+    firefly1d_model, trained_q, small_trials, agents
+):
     """log L_shared − log L_known = Σ log N(s_{t+1}; s_t + g_a·move_t, σ₀²) over valid pairs."""
     trials = small_trials
     theta = agents.double()
     nuisance = torch.full((3, 1), math.log(TEMPERATURE), dtype=torch.float64)
     known = make_loss(firefly1d_model, trained_q, 3, "known").log_likelihood(
-        theta, nuisance, trials)
+        theta, nuisance, trials
+    )
     shared = make_loss(firefly1d_model, trained_q, 3, "shared").log_likelihood(
-        theta, nuisance, trials)
+        theta, nuisance, trials
+    )
     s = trials["state"][..., 0].double().numpy()
     move = (trials["action"] - STOP).double().numpy()
     mask = trials["mask"].numpy()
@@ -220,13 +233,15 @@ def test_shared_world_adds_the_gaussian_transition_density(firefly1d_model, trai
                     mean = s[a, i, t] + g * move[a, i, t]
                     total += stats.norm.logpdf(s[a, i, t + 1], mean, sigma)
         expected.append(total)
-    torch.testing.assert_close(shared - known, torch.tensor(expected, dtype=torch.float64),
-                               atol=1e-6, rtol=1e-9)
+    torch.testing.assert_close(
+        shared - known, torch.tensor(expected, dtype=torch.float64), atol=1e-6, rtol=1e-9
+    )
     assert (trials["mask"][..., 1:].sum((1, 2)) > 0).all()  # some transitions were scored
 
 
 def test_nan_after_the_end_of_a_trial_leaves_the_shared_world_gradient_finite(
-        firefly1d_model, trained_q, small_trials, agents):
+    firefly1d_model, trained_q, small_trials, agents
+):
     # the transition density is masked after a trial's end, yet 0 × NaN would still poison
     # its gradient: a NaN there must change neither the value nor the gradient
     nuisance = torch.full((3, 1), math.log(TEMPERATURE), dtype=torch.float64)
@@ -237,7 +252,8 @@ def test_nan_after_the_end_of_a_trial_leaves_the_shared_world_gradient_finite(
     for trials in (small_trials, padded):
         theta = agents.double().requires_grad_(True)
         ll = make_loss(firefly1d_model, trained_q, 3, "shared").log_likelihood(
-            theta, nuisance, trials)
+            theta, nuisance, trials
+        )
         ll.sum().backward()
         grads.append((ll.detach(), theta.grad))
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-12, atol=1e-12)
@@ -273,6 +289,7 @@ def test_batched_hessian_matches_autograd():
     assert hessian.shape == (5, 3, 3)
     torch.testing.assert_close(value, fn(params))
     for i in range(5):
+
         def one(p, w=weights[i]):
             return row_fn(p, w)
 
@@ -426,8 +443,9 @@ def test_an_interval_is_narrow_only_while_it_spans_under_half_its_prior_range():
 def _simulate_recovery(model, q, space, seed_prior, seed_sim, n_agents=6):
     theta_true = space.sample((n_agents,), generator=torch.Generator().manual_seed(seed_prior))
     policy = boltzmann_policy(model, q, TEMPERATURE)
-    trials = simulate_agents(model, policy, theta_true, 100, task_theta=space.default(),
-                             seed=seed_sim)
+    trials = simulate_agents(
+        model, policy, theta_true, 100, task_theta=space.default(), seed=seed_sim
+    )
     return theta_true.double(), trials
 
 
@@ -451,8 +469,10 @@ def test_recovery_small_fixed_seed_set(firefly1d_model, trained_q, space):
     err_ls = (hat[:, 1] - theta_true[:, 1]).abs().median()
     temperature = result.nuisance[:, 0].exp()
     covered = (result.intervals.low <= theta_true) & (theta_true <= result.intervals.high)
-    report = (f"rel g_a {rel_ga:.4f}, |log σ₀ err| {err_ls:.3f}, τ {temperature.tolist()}, "
-              f"coverage {covered[:, :2].sum(0).tolist()}")
+    report = (
+        f"rel g_a {rel_ga:.4f}, |log σ₀ err| {err_ls:.3f}, τ {temperature.tolist()}, "
+        f"coverage {covered[:, :2].sum(0).tolist()}"
+    )
     assert rel_ga < 0.05, report
     assert err_ls < 0.35, report
     assert ((temperature >= 0.35) & (temperature <= 0.7)).all(), report
@@ -503,9 +523,7 @@ def test_sandwich_agrees_with_the_hessian_when_the_likelihood_is_exact(
     theta_true, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 2)
     loss = make_loss(firefly1d_model, trained_q, 6)
     plain = fit_theta(loss, trials, seed=0, starts=theta_true, n_screen=0)
-    sandwich = fit_theta(
-        loss, trials, seed=0, starts=theta_true, n_screen=0, covariance="sandwich"
-    )
+    sandwich = fit_theta(loss, trials, seed=0, starts=theta_true, n_screen=0, covariance="sandwich")
     torch.testing.assert_close(sandwich.theta_hat, plain.theta_hat)
     ratio = sandwich.intervals.std[:, :2] / plain.intervals.std[:, :2]
     assert ((ratio > 0.65) & (ratio < 1.35)).all(), ratio
@@ -549,6 +567,30 @@ def test_profile_intervals_end_where_the_profile_likelihood_has_fallen_by_the_qu
                 assert drop == pytest.approx(Z95**2 / 2, abs=0.02), (agent, name, float(end))
     with pytest.raises(ValueError, match="intervals: expected one of"):
         fit_theta(loss, trials, intervals="likelihood")
+
+
+def test_a_profile_search_starts_with_the_coordinates_on_their_bound_left_there():
+    """θ̂ holds coordinate 2 on its bound (logit −BOUND), where its curvature is near 0 and it
+    is coupled to θ_0: the regression on θ_0 would throw it to the other bound (it did, before,
+    and the search began hundreds of nats from the profile). Profiling θ_0 leaves it there and
+    moves θ_0 by 1.96 of its sd given the others (the unbounded nuisance 1 follows); profiling
+    θ_2 itself moves it off the bound."""
+    centre = torch.tensor([[0.3, 0.1, -BOUND]], dtype=torch.float64).expand(3, 3)
+    curvature = torch.tensor(
+        [[4.0, 1.0, 0.05], [1.0, 2.0, 0.0], [0.05, 0.0, 0.001]], dtype=torch.float64
+    ).expand(3, 3, 3)
+    which, side = torch.tensor([0, 0, 2]), torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+    bounded = torch.tensor([True, False, True])
+    point, start, singular = _profile_start(centre, curvature, which, side, bounded)
+    assert not singular.any()
+    assert (point[:2, 2] == -BOUND).all()  # left on its bound
+    sd = torch.tensor([[4.0, 1.0], [1.0, 2.0]]).inverse()[0, 0].sqrt().item()
+    assert point[:2, 0].tolist() == pytest.approx([0.3 - Z95 * sd, 0.3 + Z95 * sd])
+    follows = -0.5 * (point[1, 0] - 0.3)  # the nuisance's regression on θ_0: −h₁₀ / h₁₁
+    assert point[1, 1].item() == pytest.approx(0.1 + follows.item())
+    torch.testing.assert_close(start[0, 2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    assert point[2, 2] > -BOUND  # the bound coordinate profiled itself moves
+    torch.testing.assert_close(start[2], curvature[2])
 
 
 def test_profile_intervals_of_named_parameters_leave_the_others_wald(
@@ -595,8 +637,9 @@ def test_a_profile_that_stays_above_the_quantile_ends_on_the_bound(
     assert (iv.low[:, j] >= low).all() and (iv.high <= space.high(torch.float64)).all()
 
 
-def test_fit_rejects_bad_trials_before_any_work(firefly1d_model, trained_q, small_trials,
-                                                monkeypatch):
+def test_fit_rejects_bad_trials_before_any_work(
+    firefly1d_model, trained_q, small_trials, monkeypatch
+):
     loss = make_loss(firefly1d_model, trained_q, 3)
 
     def no_work(*args, **kwargs):

@@ -555,7 +555,7 @@ def profile_intervals(
     loss: InverseRationalLoss,
     trials: TensorDictBase,
     result: FitResult,
-    max_iter: int = 30,
+    max_iter: int = 60,
     tol: float = 0.01,
     names: Sequence[str] | None = None,
 ) -> Intervals:
@@ -565,11 +565,13 @@ def profile_intervals(
 
     Unlike the Wald interval it follows the likelihood where it is not quadratic, and it does
     not depend on the coordinates. Each (agent, parameter, side) is a row of one batched
-    search, started at the Wald endpoint: the other coordinates are re-maximised by damped
-    BFGS steps (from the curvature at θ̂), then θ_j takes a Newton step on the profile, whose
-    slope is θ_j's own gradient there, inside a bracket of points above and below the target
-    (else halfway between them). A side whose likelihood does not fall that far before the
-    parameter's bound ends at the bound. An endpoint found to ``tol`` nats (value and the
+    search, started at the Wald endpoint (coordinates θ̂ holds on their bound left there): the
+    other coordinates are re-maximised by damped BFGS steps (from the curvature at θ̂), then
+    θ_j takes a Newton step on the profile, whose slope is θ_j's own gradient there, inside a
+    bracket of points above and below the target (else halfway between them; a point taken as
+    beyond the target before the others settled leaves the bracket once the profile's step
+    heads past it). A side whose likelihood does not fall that far before the parameter's
+    bound ends at the bound. An endpoint found to ``tol`` nats (value and the
     others' remaining decrease) is ``profiled``; the others, and parameters without a Wald
     interval, keep the Wald endpoints.
     """
@@ -602,19 +604,16 @@ def profile_intervals(
     side = torch.tensor([-1.0, 1.0], dtype=centre.dtype, device=device).repeat(n_agents * n_named)
     rows = torch.arange(len(agent), device=device)
     data = trials[agent.to(trials.device)]
-    curvature = _absolute(result.information)[agent]
     target = (-result.log_likelihood)[agent] + 0.5 * Z95**2
-    # the Wald endpoint: θ_j moved by 1.96 sd, the others along their regression on θ_j
-    cov, singular = torch.linalg.inv_ex(curvature)
-    column = cov[rows, :, which]
-    sd = column[rows, which].clamp_min(1e-300).sqrt()
-    point = centre[agent] + (side * Z95 / sd).unsqueeze(-1) * column
     bounded = loss.bounded.to(device)
-    point = _clamp_bounded(point, bounded)
+    point, fixed, singular = _profile_start(
+        centre[agent], _absolute(result.information)[agent], which, side, bounded
+    )
     has_wald = torch.isfinite(wald.std[:, free][:, chosen]).reshape(-1).repeat_interleave(2)
     done = ~has_wald.to(device) | (singular != 0) | ~torch.isfinite(point).all(-1)
     found = torch.zeros_like(done)
-    fixed = curvature.clone()
+    # the others' steps start from that curvature, and restart from it after a refused step
+    curvature = fixed.clone()
 
     def evaluate(at: torch.Tensor, i: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         ll, score, _ = _by_rows(lambda q, d: _trial_scores(loss, k, q, d), at, data[i], GRAD_TRIALS)
@@ -624,6 +623,7 @@ def profile_intervals(
     # its target (θ̂ to begin with) and, once one is seen, a point where it lies below
     inside = centre[agent].clone()
     outside = torch.full_like(inside, torch.nan)
+    guessed = torch.zeros_like(done)  # the point outside was taken before the others settled
     damping = torch.full_like(target, 1e-3)
     value, grad = evaluate(point, rows)
     for _ in range(max_iter):
@@ -651,9 +651,15 @@ def profile_intervals(
         below = (gap < 0).unsqueeze(-1)
         inside[active] = torch.where(outer.unsqueeze(-1) & below, x, inside[active])
         outside[active] = torch.where(outer.unsqueeze(-1) & ~below, x, outside[active])
+        guessed[active] = torch.where(outer & (gap >= 0), far, guessed[active])
+        newton = c - gap / g[i, j]
+        # a point taken as beyond the endpoint before the others were re-maximised may not be:
+        # once the profile's own Newton step from a settled point heads past it, drop it
+        past = (newton - outside[active][i, j]) * side[active] > 0
+        doubtful = settled & ~reached & (gap < 0) & guessed[active] & past
+        outside[active[doubtful]] = torch.nan
         lo, hi = inside[active], outside[active]
         known = torch.isfinite(hi[:, 0])
-        newton = c - gap / g[i, j]
         within = torch.where(
             known,
             (newton - lo[i, j]) * (newton - hi[i, j]) < 0,
@@ -700,6 +706,33 @@ def profile_intervals(
     flags[:, columns] = profiled
     identified = torch.where(flags, narrow(space, low, high), wald.identified)
     return dataclasses.replace(wald, low=low, high=high, identified=identified, profiled=flags)
+
+
+def _profile_start(
+    centre: torch.Tensor,
+    curvature: torch.Tensor,
+    which: torch.Tensor,
+    side: torch.Tensor,
+    bounded: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where each profile search starts, ``(point, curvature, singular)`` per row: the Wald
+    endpoint, θ_j moved ``side`` × 1.96 sd, the others along their regression on θ_j.
+
+    A coordinate θ̂ holds on its bound stays there: its curvature, near 0 in the logit, would
+    throw it to the other bound, far from the profile. The curvature returned has those
+    coordinates decoupled, with a unit curvature of their own (they may leave the bound as θ_j
+    moves); ``singular`` is ``torch.linalg.inv_ex``'s flag.
+    """
+    rows = torch.arange(len(which), device=centre.device)
+    held = bounded & _on_bound(centre)
+    held[rows, which] = False
+    eye = torch.eye(centre.shape[-1], dtype=centre.dtype, device=centre.device)
+    start = torch.where(~held.unsqueeze(-1) & ~held.unsqueeze(-2), curvature, eye)
+    cov, singular = torch.linalg.inv_ex(start)
+    column = torch.where(held, 0.0, cov[rows, :, which])
+    sd = column[rows, which].clamp_min(1e-300).sqrt()
+    point = _clamp_bounded(centre + (side * Z95 / sd).unsqueeze(-1) * column, bounded)
+    return point, start, singular
 
 
 def particle_check(
