@@ -11,6 +11,7 @@ from scipy import stats
 import irc_torchrl.algorithms.fit as fit_module
 from irc_torchrl.algorithms.fit import (
     BOUND,
+    MAX_STEP,
     _behind_best,
     _bfgs_update,
     _profile_start,
@@ -573,13 +574,15 @@ def test_a_profile_search_starts_with_the_coordinates_on_their_bound_left_there(
     """θ̂ holds coordinate 2 on its bound (logit −BOUND), where its curvature is near 0 and it
     is coupled to θ_0: the regression on θ_0 would throw it to the other bound (it did, before,
     and the search began hundreds of nats from the profile). Profiling θ_0 leaves it there and
-    moves θ_0 by 1.96 of its sd given the others (the unbounded nuisance 1 follows); profiling
-    θ_2 itself moves it off the bound."""
-    centre = torch.tensor([[0.3, 0.1, -BOUND]], dtype=torch.float64).expand(3, 3)
+    moves θ_0 by 1.96 of its sd given the others (the unbounded nuisance 1 follows). Profiled
+    itself, it starts at θ̂ towards its bound and at most MAX_STEP away from it, the others
+    following the move taken."""
+    centre = torch.tensor([[0.3, 0.1, -BOUND]], dtype=torch.float64).expand(4, 3)
     curvature = torch.tensor(
         [[4.0, 1.0, 0.05], [1.0, 2.0, 0.0], [0.05, 0.0, 0.001]], dtype=torch.float64
-    ).expand(3, 3, 3)
-    which, side = torch.tensor([0, 0, 2]), torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)
+    ).expand(4, 3, 3)
+    which = torch.tensor([0, 0, 2, 2])
+    side = torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64)
     bounded = torch.tensor([True, False, True])
     point, start, singular = _profile_start(centre, curvature, which, side, bounded)
     assert not singular.any()
@@ -589,8 +592,11 @@ def test_a_profile_search_starts_with_the_coordinates_on_their_bound_left_there(
     follows = -0.5 * (point[1, 0] - 0.3)  # the nuisance's regression on θ_0: −h₁₀ / h₁₁
     assert point[1, 1].item() == pytest.approx(0.1 + follows.item())
     torch.testing.assert_close(start[0, 2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    assert point[2, 2] > -BOUND  # the bound coordinate profiled itself moves
-    torch.testing.assert_close(start[2], curvature[2])
+    torch.testing.assert_close(point[2], centre[2])  # towards its own bound: nowhere to go
+    assert point[3, 2].item() == pytest.approx(-BOUND + MAX_STEP)
+    regression = curvature[3].inverse()[:, 2] / curvature[3].inverse()[2, 2]
+    torch.testing.assert_close(point[3], centre[3] + MAX_STEP * regression)
+    torch.testing.assert_close(start[3], curvature[3])
 
 
 def test_profile_intervals_of_named_parameters_leave_the_others_wald(

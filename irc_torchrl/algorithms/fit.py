@@ -565,13 +565,14 @@ def profile_intervals(
 
     Unlike the Wald interval it follows the likelihood where it is not quadratic, and it does
     not depend on the coordinates. Each (agent, parameter, side) is a row of one batched
-    search, started at the Wald endpoint (coordinates θ̂ holds on their bound left there): the
-    other coordinates are re-maximised by damped BFGS steps (from the curvature at θ̂), then
-    θ_j takes a Newton step on the profile, whose slope is θ_j's own gradient there, inside a
-    bracket of points above and below the target (else halfway between them; a point taken as
-    beyond the target before the others settled leaves the bracket once the profile's step
-    heads past it). A side whose likelihood does not fall that far before the parameter's
-    bound ends at the bound. An endpoint found to ``tol`` nats (value and the
+    search, started at the Wald endpoint (:func:`_profile_start`: coordinates θ̂ holds on a
+    bound left there): the other coordinates are re-maximised by damped BFGS steps (from the
+    curvature at θ̂, a unit one for those held), then θ_j takes a Newton step on the profile,
+    whose slope is θ_j's own gradient there, inside a bracket of points above and below the
+    target (else halfway between them; a point taken as beyond the target before the others
+    settled is tested, θ_j moved there, when the step heads past it, and leaves the bracket
+    when a settled point there lies inside). A side whose likelihood does not fall that far
+    before the parameter's bound ends at the bound. An endpoint found to ``tol`` nats (value and the
     others' remaining decrease) is ``profiled``; the others, and parameters without a Wald
     interval, keep the Wald endpoints.
     """
@@ -654,10 +655,16 @@ def profile_intervals(
         guessed[active] = torch.where(outer & (gap >= 0), far, guessed[active])
         newton = c - gap / g[i, j]
         # a point taken as beyond the endpoint before the others were re-maximised may not be:
-        # once the profile's own Newton step from a settled point heads past it, drop it
-        past = (newton - outside[active][i, j]) * side[active] > 0
-        doubtful = settled & ~reached & (gap < 0) & guessed[active] & past
-        outside[active[doubtful]] = torch.nan
+        # a settled point inside at its θ_j shows it is not (it leaves the bracket), and the
+        # profile's step from a settled point heading past it tests it first (θ_j goes there)
+        guess_j = outside[active][i, j]
+        suspect = settled & ~reached & (gap < 0) & guessed[active]
+        disproved = suspect & ((c - guess_j) * side[active] >= 0)
+        outside[active[disproved]] = torch.nan
+        test = (
+            suspect & ~disproved & torch.isfinite(newton) & ((newton - guess_j) * side[active] > 0)
+        )
+        newton = torch.where(test, guess_j, newton)
         lo, hi = inside[active], outside[active]
         known = torch.isfinite(hi[:, 0])
         within = torch.where(
@@ -671,7 +678,7 @@ def profile_intervals(
         widen = x + (side[active] * (c - centre_j).abs().clamp_min(0.1)).unsqueeze(-1) * direction
         fallback = torch.where(known.unsqueeze(-1), 0.5 * (lo + hi.nan_to_num()), widen)
         newton_x = x + (newton.clamp(-BOUND, BOUND) - c).unsqueeze(-1) * direction
-        use_newton = (within & ~far & torch.isfinite(newton)).unsqueeze(-1)
+        use_newton = ((within | test) & ~far & torch.isfinite(newton)).unsqueeze(-1)
         step = torch.where(outer.unsqueeze(-1), torch.where(use_newton, newton_x, fallback) - x, w)
         candidate = x + _within_region(step)
         candidate = _clamp_bounded(candidate, bounded)
@@ -683,7 +690,7 @@ def profile_intervals(
         accept = moving & (outer | (f_c < f))
         taken = active[accept]
         curvature[taken] = _bfgs_update(h[accept], (candidate - x)[accept], g_c[accept] - g[accept])
-        # a refused step of the others restarts their curvature from θ̂'s
+        # a refused step of the others restarts their curvature from the start's
         curvature[active[moving & ~accept]] = fixed[active[moving & ~accept]]
         point[taken], value[taken], grad[taken] = candidate[accept], f_c[accept], g_c[accept]
         damping[active] = torch.where(
@@ -718,21 +725,29 @@ def _profile_start(
     """Where each profile search starts, ``(point, curvature, singular)`` per row: the Wald
     endpoint, θ_j moved ``side`` × 1.96 sd, the others along their regression on θ_j.
 
-    A coordinate θ̂ holds on its bound stays there: its curvature, near 0 in the logit, would
-    throw it to the other bound, far from the profile. The curvature returned has those
-    coordinates decoupled, with a unit curvature of their own (they may leave the bound as θ_j
-    moves); ``singular`` is ``torch.linalg.inv_ex``'s flag.
+    The other coordinates θ̂ holds on a bound stay there: their curvature, near 0 in the
+    logit, would throw them to the other bound, far from the profile. θ_j's move stops at its
+    bound, and from a bound of its own goes at most ``MAX_STEP`` (the same near-0 curvature);
+    the others follow the move taken. The curvature returned has the held coordinates
+    decoupled, with a unit curvature of their own (the search's steps may take them off the
+    bound); ``singular`` is ``torch.linalg.inv_ex``'s flag.
     """
     rows = torch.arange(len(which), device=centre.device)
     held = bounded & _on_bound(centre)
+    own = held[rows, which]
     held[rows, which] = False
     eye = torch.eye(centre.shape[-1], dtype=centre.dtype, device=centre.device)
     start = torch.where(~held.unsqueeze(-1) & ~held.unsqueeze(-2), curvature, eye)
     cov, singular = torch.linalg.inv_ex(start)
     column = torch.where(held, 0.0, cov[rows, :, which])
     sd = column[rows, which].clamp_min(1e-300).sqrt()
-    point = _clamp_bounded(centre + (side * Z95 / sd).unsqueeze(-1) * column, bounded)
-    return point, start, singular
+    move = side * Z95 * sd
+    limit = torch.where(own, MAX_STEP, torch.inf)
+    taken = centre[rows, which] + move.clamp(-limit, limit)
+    taken = torch.where(bounded[which], taken.clamp(-BOUND, BOUND), taken)
+    fraction = (taken - centre[rows, which]) / move
+    point = centre + (fraction * side * Z95 / sd).unsqueeze(-1) * column
+    return _clamp_bounded(point, bounded), start, singular
 
 
 def particle_check(
