@@ -69,7 +69,9 @@ that act by it::
 examples/define_your_task.py:ReachModel --seed 0 ddpg.n_envs=32 ddpg.total_frames=200000
 ddpg.anneal_frames=200000 ddpg.warmup_frames=2048 ddpg.buffer_size=100000
 ddpg.batch_size=256 evaluation.n_theta=16 evaluation.trials_per_theta=8
-evaluation.every=250``).
+evaluation.every=250``; then ``irc recover --model examples/define_your_task.py:ReachModel
+--checkpoint runs/train/checkpoint.pt`` scores Algorithm 2 on 40 agents of this task, about
+6 min on 2 cores).
 
 At seed 0 the learned policy costs 1.23× the controller's over 16 θ (1.00-1.86×). It reads θ
 otherwise than the optimum: its control turns on the effort cost a third as much (0.12 against
