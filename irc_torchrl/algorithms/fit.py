@@ -572,9 +572,9 @@ def profile_intervals(
     target (else halfway between them; a point taken as beyond the target before the others
     settled is tested, θ_j moved there, when the step heads past it, and leaves the bracket
     when a settled point there lies inside). A side whose likelihood does not fall that far
-    before the parameter's bound ends at the bound. An endpoint found to ``tol`` nats (value and the
-    others' remaining decrease) is ``profiled``; the others, and parameters without a Wald
-    interval, keep the Wald endpoints.
+    before the parameter's bound ends at the bound. An endpoint found to ``tol`` nats (value
+    and the others' remaining decrease) is ``profiled``; the others, and parameters without a
+    Wald interval, keep the Wald endpoints.
     """
     _check_iterations(max_iter, tol)
     trials = validate_trials(trials, loss.model)
