@@ -235,6 +235,12 @@ def _trial_name(arrays: Mapping[str, np.ndarray], row: int) -> str:
     return str(arrays["trial"][row]) if "trial" in arrays else str(row)
 
 
+def overhead_view(state_names: Sequence[str], target_dim: int) -> bool:
+    """Whether beliefs can be seen from above: the state starts with a position in the plane
+    (x, y) and the target is a point of it (the firefly's; a task of one's own need not be)."""
+    return tuple(state_names[:2]) == ("x", "y") and target_dim == 2
+
+
 def plot_belief_overhead(
     arrays: Mapping[str, np.ndarray],
     path: str | Path,
@@ -555,8 +561,7 @@ def _belief_figures(summary: Mapping, beliefs: Mapping[str, np.ndarray], out: Pa
         }
         method = summary.get("primary_method", summary.get("method", ""))
         title = f"{label}: beliefs under θ̂ ({method})"
-        planar = summary["state_names"][:2] == ["x", "y"] and arrays["target"].shape[-1] == 2
-        if planar:  # a position in the plane, seen from above
+        if overhead_view(summary["state_names"], arrays["target"].shape[-1]):
             written.append(
                 plot_belief_overhead(
                     arrays, out / f"{label}_beliefs_overhead.png",

@@ -70,7 +70,12 @@ from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.objectives.marginal import FINAL_STEPS, check_mixture
-from irc_torchrl.plots import plot_belief_overhead, plot_belief_time, plot_recovery
+from irc_torchrl.plots import (
+    overhead_view,
+    plot_belief_overhead,
+    plot_belief_time,
+    plot_recovery,
+)
 
 __all__ = [
     "Recovery2DConfig",
@@ -322,8 +327,7 @@ def recover_firefly2d(
     whose checkpoint ``config.checkpoint`` names (``None``: the 2D firefly).
     """
     config.validate(model)
-    device = resolve_device(config.device)
-    actor, model, _ = load_ensemble_policy(config.checkpoint, device, model)
+    actor, model, _ = load_ensemble_policy(config.checkpoint, resolve_device(config.device), model)
     space = model.theta_space
     action_model = _recovery_action_model(config, actor, model)
     if config.fit.covariance == "sandwich":
@@ -617,7 +621,7 @@ def belief_figures(
     position in the plane, overhead (the paper's Fig. 1F and 1E), into ``out``; ``irc
     report`` redraws them from ``trials/``. The state's names and units default to the 2D
     firefly's."""
-    planar = state_names[:2] == ("x", "y") and trials["target"].shape[-1] == 2
+    planar = overhead_view(state_names, trials["target"].shape[-1])
     written = []
     for method in methods:
         arrays = _belief_arrays(trials, method, agent=0, dt=dt)
