@@ -32,6 +32,7 @@ __all__ = [
     "PACKAGED",
     "first_line",
     "load_checkpoint",
+    "read_weights",
     "resolve_checkpoint",
     "save_checkpoint",
 ]
@@ -191,7 +192,7 @@ def load_checkpoint(
         )
     required = (required,) if isinstance(required, str) else tuple(required)
     path = resolve_checkpoint(source)
-    data = _read(path)
+    data = read_weights(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         found = data.get("format") if isinstance(data, dict) else type(data).__name__
         raise ValueError(f"checkpoint {path}: format is {found!r}, expected {FORMAT!r}")
@@ -224,8 +225,8 @@ def load_checkpoint(
     return data
 
 
-def _read(path: Path) -> Any:
-    """The checkpoint's payload, every failure a one-line ValueError naming ``path``.
+def read_weights(path: Path) -> Any:
+    """A file's weights-only payload, every failure a one-line ValueError naming ``path``.
 
     The archive's CRCs are checked first: ``torch.load`` reads a damaged tensor silently.
     """

@@ -60,7 +60,10 @@ def _run_recovery(
             "(a file), got the packaged firefly2d"
         )
     _check_sendable(spec, "fit.workers", config.fit.workers)
-    summary = run_recovery(config, args.out, show_progress=not args.quiet, model=model)
+    resume = getattr(args, "resume", False)  # `irc demo` runs whole
+    summary = run_recovery(
+        config, args.out, show_progress=not args.quiet, model=model, resume=resume
+    )
     print(format_recovery(summary))
     drawn = any(Path(args.out).glob("beliefs_overhead_*.png"))  # for a position in the plane
     overhead = "beliefs_overhead_*.png, " if drawn else ""
@@ -217,6 +220,7 @@ def _fit(args: argparse.Namespace) -> int:
         device=args.device,
         progress=not args.quiet,
         model=_task_model(args.model),
+        resume=args.resume,
     )
     print(format_fit(summary))
     print(f"wrote {args.out}/: summary.json, beliefs.npz and figures (PNG)")
@@ -257,6 +261,18 @@ def _add_common(parser: argparse.ArgumentParser, overrides_help: str) -> None:
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help=overrides_help)
+
+
+def _add_resume(parser: argparse.ArgumentParser, same: str) -> None:
+    """``--resume``: read the fits an earlier run into ``--out`` finished (``--out/stages``)."""
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help=f"read the fits an earlier run into --out with the same {same} finished (kept in "
+        "--out/stages as each ends) instead of fitting them again: an interrupted run goes on "
+        "where it stopped, with the same numbers, and a larger calibrate reuses the datasets "
+        "already refitted",
+    )
 
 
 def _add_model(parser: argparse.ArgumentParser, note: str) -> None:
@@ -313,6 +329,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     )
     fit.add_argument("files", nargs="+", metavar="FILE", help="recordings, one agent each")
     fit.add_argument("--out", required=True, help="output folder")
+    _add_resume(fit, "recordings and settings")
     fit.add_argument(
         "--method",
         choices=["marginal", "map", "both"],
@@ -469,6 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="torch device to simulate and fit on, e.g. cuda:0 (default: the config's, cpu)",
     )
     recover.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_resume(recover, "settings")
     recover.add_argument(
         "overrides", nargs="*", metavar="key=value", help="config overrides, e.g. n_trials=50"
     )

@@ -23,6 +23,7 @@ from irc_torchrl.algorithms import recordings
 from irc_torchrl.algorithms.calibration import Calibration, agent_intervals, interval_pivots
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recordings import format_fit
+from irc_torchrl.algorithms.stages import Stages
 from irc_torchrl.cli import build_parser, main
 from irc_torchrl.config import RecordingFitConfig
 from irc_torchrl.data.io import read_trials
@@ -794,7 +795,7 @@ def test_calibration_simulates_each_recording_at_its_last_methods_fit_in_its_own
     monkeypatch.setattr(recordings, "_fit_groups", refit)
     config = RecordingFitConfig(calibrate=2, particles=5, calibration_tail="own")
     calibrations = recordings._calibrate_fits(
-        None, None, None, space, records, fits, config, "both", 0, "cpu", False
+        None, None, None, space, records, fits, config, "both", 0, "cpu", False, Stages()
     )
     batches = [([1.5, 3.5], [0.5, 0.75], 2), ([2.5], [0.25], 1)]
     assert [call[:3] for call in simulated] == batches * 2

@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from queue import Empty
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -105,13 +106,34 @@ class FitResult:
             intervals=self.intervals.select(rows),
         )
 
-    def cpu(self) -> FitResult:
-        """This result on the CPU."""
+    def to(self, device: torch.device | str) -> FitResult:
+        """This result on ``device``."""
         return dataclasses.replace(
             self,
-            **{name: getattr(self, name).cpu() for name in self._PER_AGENT},
-            intervals=self.intervals.cpu(),
+            **{name: getattr(self, name).to(device) for name in self._PER_AGENT},
+            intervals=self.intervals.to(device),
         )
+
+    def cpu(self) -> FitResult:
+        """This result on the CPU."""
+        return self.to("cpu")
+
+    def state_dict(self) -> dict[str, Any]:
+        """This result as tensors and plain values, which ``torch.load(weights_only=True)``
+        reads back (:meth:`from_state_dict`)."""
+        state = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        state["intervals"] = {
+            f.name: getattr(self.intervals, f.name) for f in dataclasses.fields(Intervals)
+        }
+        state["names"] = list(self.names)
+        return state
+
+    @staticmethod
+    def from_state_dict(state: Mapping[str, Any]) -> FitResult:
+        """The result :meth:`state_dict` gave; a ``KeyError`` or ``TypeError`` if ``state``
+        is not one."""
+        fields = {**state, "intervals": Intervals(**state["intervals"])}
+        return FitResult(**fields)
 
     @staticmethod
     def cat(parts: Sequence[FitResult]) -> FitResult:

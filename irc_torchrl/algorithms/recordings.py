@@ -17,6 +17,7 @@ import math
 import re
 import time
 from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,7 @@ from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.stages import Stages, fit_settings, stage_key
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import (
     earlier_summary,
@@ -298,6 +300,7 @@ def fit_recordings(
     device: str = "cpu",
     progress: bool = True,
     model: TaskModel | None = None,
+    resume: bool = False,
 ) -> dict[str, Any]:
     """Fit θ for each recording (one agent per file) and write the results into ``out``.
 
@@ -307,7 +310,10 @@ def fit_recordings(
     not depend on the others; a fit stopped by ``max_iter`` may end elsewhere). Writes
     ``summary.json``, ``beliefs.npz`` (the agent's belief at every recorded step under θ̂,
     with the recording's trial numbers) and figures; returns the summary. ``model``: a task of
-    the user's own, whose policy ``checkpoint`` holds (``None``: the 2D firefly task).
+    the user's own, whose policy ``checkpoint`` holds (``None``: the 2D firefly task). Each
+    fit is kept in ``out/stages`` as it finishes; with ``resume`` those an earlier, interrupted
+    fit of the same recordings and settings finished are read instead of fitted again (the
+    same numbers; ``summary["resumed"]`` names them).
     """
     if method not in FIT_METHODS:
         raise ValueError(f"method: expected one of {FIT_METHODS}, got {method!r}")
@@ -334,15 +340,24 @@ def fit_recordings(
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
+        settings = {
+            "config": fit_settings(config),
+            "method": method,
+            "free": space.free_names,
+            "seed": seed,
+            "device": str(target),
+        }
+        key = stage_key(settings, ckpt["path"], model, recordings)
+        stages = Stages(out / "stages", key, resume)
         fits, beliefs, timings, checks, per_trial = _fit_groups(
-            model, action_model, space, recordings, config, method, seed, target, progress
+            model, action_model, space, recordings, config, method, seed, target, progress, stages
         )
         calibrations = {}
         if config.calibrate:
             start = time.perf_counter()
             calibrations = _calibrate_fits(
                 model, actor, action_model, space, recordings, fits, config, method, seed,
-                target, progress,
+                target, progress, stages,
             )  # fmt: skip
             timings["calibrate_s"] = time.perf_counter() - start
     timings = {"read_s": read_s, **timings}
@@ -379,9 +394,12 @@ def fit_recordings(
         summary["methods"] = by_method
     summary["state_names"] = list(model.state_names)
     summary["state_units"] = [_in_metres(unit, config.units) for unit in model.state_units]
+    if stages.reused:
+        summary["resumed"] = stages.reused
     earlier = _earlier_agents(out, "fit")
     _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs, per_trial[primary])
     write_json(out / "summary.json", summary)
+    stages.prune()
     written = {path.name for path in report_run(out)}
     if earlier is not None:  # an earlier fit's figures this one did not draw again
         kinds, methods = ("recovery", "estimates"), ("", "_map", "_marginal")
@@ -414,10 +432,13 @@ def _fit_groups(
     seed: int,
     device: torch.device,
     progress: bool,
+    stages: Stages,
+    stage: str = "fit",
 ) -> tuple[
     dict[str, FitResult], list[TensorDict], dict[str, float], dict[str, list], dict[str, list]
 ]:
     """Fit every recording, batching those with equal trial counts; per method and per file.
+    Each batch's fit is the stage ``{stage}_{n_trials}trials_{method}``.
 
     Returns the fit per method (agents in the order of ``recordings``), each recording's
     beliefs under the primary method's θ̂ (``[n_trials, T]``), the time of each method,
@@ -438,27 +459,13 @@ def _fit_groups(
         ).to(device)
         starts = None
         for name in methods:
-            start = time.perf_counter()
             loss = InverseRationalLoss(
                 model, action_model, theta_space=space, n_agents=len(members), method=name,
                 components=config.components,
             ).to(device)  # fmt: skip
-            desc = f"fit {name}: {len(members)} recording(s) of {held.shape[1]} trials"
-            with tqdm(total=config.max_iter, desc=desc, disable=not progress) as bar:
-                result = fit_theta(
-                    loss,
-                    held,
-                    n_starts=config.n_starts,
-                    n_screen=config.n_screen,
-                    max_iter=config.max_iter,
-                    seed=seed,
-                    curvature=config.curvature,
-                    covariance=config.covariance,
-                    intervals=config.intervals,
-                    starts=starts,
-                    progress=lambda i, n: bar.update(1),
-                    workers=config.workers,
-                )
+            work = partial(_fit_batch, loss, held, config, seed, starts, progress)
+            result, fit_s = stages.fit(f"{stage}_{held.shape[1]}trials_{name}", work, device)
+            start = time.perf_counter() - fit_s  # the method's time: its fit's, then what follows
             starts = result.theta_hat
             parts[name].append((members, result))
             with torch.no_grad():
@@ -487,6 +494,33 @@ def _fit_groups(
         fits[name] = combined.select(rank)
     timings["fit_s"] = sum(v for k, v in timings.items() if k.startswith("fit_"))
     return fits, beliefs, timings, checks, per_trial
+
+
+def _fit_batch(
+    loss: InverseRationalLoss,
+    held: TensorDict,
+    config: RecordingFitConfig,
+    seed: int,
+    starts: torch.Tensor | None,
+    progress: bool,
+) -> FitResult:
+    """:func:`fit_theta` on one batch of recordings as ``config`` says, with a progress bar."""
+    desc = f"fit {loss.method}: {held.shape[0]} recording(s) of {held.shape[1]} trials"
+    with tqdm(total=config.max_iter, desc=desc, disable=not progress) as bar:
+        return fit_theta(
+            loss,
+            held,
+            n_starts=config.n_starts,
+            n_screen=config.n_screen,
+            max_iter=config.max_iter,
+            seed=seed,
+            curvature=config.curvature,
+            covariance=config.covariance,
+            intervals=config.intervals,
+            starts=starts,
+            progress=lambda i, n: bar.update(1),
+            workers=config.workers,
+        )
 
 
 def _worst_trials(recording: TensorDict, log_likelihood: torch.Tensor, n: int = 3) -> list[dict]:
@@ -519,10 +553,12 @@ def _calibrate_fits(
     seed: int,
     device: torch.device,
     progress: bool,
+    stages: Stages,
 ) -> dict[str, Calibration]:
     """Every method's :class:`Calibration` from ``config.calibrate`` datasets simulated at
     each recording's θ̂ of the last method (its motor noise, its world, its number of
-    trials), fitted by :func:`_fit_groups` as the recordings were (without particle checks)."""
+    trials), fitted by :func:`_fit_groups` as the recordings were (without particle checks;
+    dataset ``k``'s fits the stages ``calibration{k + 1}_…``)."""
     result = fits[list(fits)[-1]]
     world = torch.stack([r["task_theta"][0, 0] for r in recordings])
     groups = _by_trial_count(recordings)
@@ -539,8 +575,9 @@ def _calibrate_fits(
             for j, i in enumerate(members):
                 synthetic[i] = simulated[j].select(*TRIAL_KEYS)
         refits, *_ = _fit_groups(
-            model, action_model, space, synthetic, quiet, method, seed, device, progress
-        )
+            model, action_model, space, synthetic, quiet, method, seed, device, progress,
+            stages, f"calibration{k + 1}",
+        )  # fmt: skip
         return refits
 
     theta = result.theta_hat.float().cpu()
@@ -680,6 +717,8 @@ def format_fit(summary: dict[str, Any]) -> str:
     """A readable table per recording: θ̂, its 95% interval, the truth if known, identified."""
     units = summary.get("units", {})
     lines = []
+    if summary.get("resumed"):
+        lines.append(f"resumed: {', '.join(summary['resumed'])} read from the earlier run")
     for method, part in (summary.get("methods") or {summary["method"]: summary}).items():
         for agent in part["agents"]:
             truth = agent.get("theta_true")

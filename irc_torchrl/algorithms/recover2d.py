@@ -49,6 +49,8 @@ from irc_torchrl.algorithms.fit import (
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.stages import Stages, fit_settings, stage_key
+from irc_torchrl.checkpoint import resolve_checkpoint
 from irc_torchrl.checks import check_fields
 from irc_torchrl.config import (
     FitConfig,
@@ -85,6 +87,7 @@ __all__ = [
     "format_recovery",
     "predicted_widths",
     "recover_firefly2d",
+    "recovery_stages",
     "run_recovery",
     "state_layout",
     "write_recovery",
@@ -319,14 +322,18 @@ def recover_firefly2d(
     config: Recovery2DConfig,
     progress: Callable[[str, int, int], None] | None = None,
     model: TaskModel | None = None,
+    stages: Stages | None = None,
 ) -> tuple[TensorDict, dict, dict[str, FitResult]]:
     """Simulate, fit with every configured estimator and score: ``(trials, summary, fits)``.
 
     ``trials`` holds the simulated data with the truth (``theta``, ``belief``) and, per method,
     the recovered belief under ``(method, "belief")``. ``model``: a task of the user's own,
-    whose checkpoint ``config.checkpoint`` names (``None``: the 2D firefly).
+    whose checkpoint ``config.checkpoint`` names (``None``: the 2D firefly). ``stages`` keeps
+    each fit as it finishes and, resuming, reads those an earlier run finished
+    (:func:`recovery_stages`).
     """
     config.validate(model)
+    stages = stages or Stages()
     actor, model, _ = load_ensemble_policy(config.checkpoint, resolve_device(config.device), model)
     space = model.theta_space
     action_model = _recovery_action_model(config, actor, model)
@@ -354,7 +361,7 @@ def recover_firefly2d(
         "dt": model.dt,
         "methods": {},
     }
-    fitted = _fit_methods(config, model, action_model, held, progress)
+    fitted = _fit_methods(config, model, action_model, held, stages, progress)
     for method, (loss, result, fit_s) in fitted.items():
         scored = score_recovery(space, theta_true, result)
         groups = {
@@ -396,7 +403,7 @@ def recover_firefly2d(
     if config.calibrate:
         begin = time.perf_counter()
         last = fitted[config.method_list[-1]].result
-        calibrations = _calibrate(config, model, actor, action_model, held, last, progress)
+        calibrations = _calibrate(config, model, actor, action_model, held, last, stages, progress)
         for method, calibration in calibrations.items():
             calibrated = calibration.apply(space, fitted[method].result)
             scored = score_recovery(space, theta_true, calibrated)
@@ -407,6 +414,8 @@ def recover_firefly2d(
             }
         timings["calibrate_s"] = time.perf_counter() - begin
     summary["timings"] = timings
+    if stages.reused:
+        summary["resumed"] = stages.reused
     return trials, summary, {method: fit.result for method, fit in fitted.items()}
 
 
@@ -423,19 +432,22 @@ def _fit_methods(
     model: TaskModel,
     action_model: CensoredGaussianActionModel,
     held: TensorDict,
+    stages: Stages,
     progress: Callable[[str, int, int], None] | None = None,
     label: str = "",
+    stage: str = "fit",
 ) -> dict[str, _Fitted]:
-    """Every configured estimator on ``held``, in order; after map, map's θ̂ joins the
-    marginal's screened draws. ``label`` tells the progress bars of refits apart."""
+    """Every configured estimator on ``held``, in order, each the stage ``{stage}_{method}``;
+    after map, map's θ̂ joins the marginal's screened draws. ``label`` tells the progress
+    bars of refits apart."""
     fitted: dict[str, _Fitted] = {}
     for method in config.method_list:
         loss = InverseRationalLoss(
             model, action_model, n_agents=held.shape[0], method=method,
             components=config.components,
         )  # fmt: skip
-        begin = time.perf_counter()
-        result = fit_theta(
+        work = partial(
+            fit_theta,
             loss,
             held,
             n_starts=config.fit.n_starts,
@@ -449,7 +461,7 @@ def _fit_methods(
             progress=None if progress is None else partial(progress, method + label),
             workers=config.fit.workers,
         )
-        fitted[method] = _Fitted(loss, result, time.perf_counter() - begin)
+        fitted[method] = _Fitted(loss, *stages.fit(f"{stage}_{method}", work, held.device))
     return fitted
 
 
@@ -460,11 +472,12 @@ def _calibrate(
     action_model: CensoredGaussianActionModel,
     held: TensorDict,
     result: FitResult,
+    stages: Stages,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> dict[str, Calibration]:
     """Every method's :class:`Calibration` from ``config.calibrate`` datasets simulated at
     ``result``'s θ̂, motor noise and lapse rate, each agent in its recorded world, refitted
-    as ``held``."""
+    as ``held`` (the stages ``calibration{i}_{method}``)."""
     world = held["task_theta"][:, 0, 0]
 
     def refit(i: int) -> dict[str, FitResult]:
@@ -473,7 +486,9 @@ def _calibrate(
         )
         synthetic = synthetic.select(*RECORDED).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"
-        fitted = _fit_methods(config, model, action_model, synthetic, progress, label)
+        fitted = _fit_methods(
+            config, model, action_model, synthetic, stages, progress, label, f"calibration{i + 1}"
+        )
         return {method: fit.result for method, fit in fitted.items()}
 
     space, theta = model.theta_space, result.theta_hat.float()
@@ -551,16 +566,31 @@ def _particle_check(
 DEMO_OVERRIDES = ("n_prior_agents=2", "n_mistaken_agents=1", "n_trials=40", "calibrate=0")
 
 
+def recovery_stages(
+    config: Recovery2DConfig, out: str | Path, model: TaskModel | None = None, resume: bool = False
+) -> Stages:
+    """The :class:`Stages` of a recovery into ``out`` (``out/stages``), keyed by every setting
+    its fits depend on (:func:`fit_settings`), the policy's checkpoint and, for a task of the
+    user's own, its source."""
+    key = stage_key(fit_settings(config), resolve_checkpoint(config.checkpoint), model)
+    return Stages(Path(out) / "stages", key, resume)
+
+
 def run_recovery(
     config: Recovery2DConfig,
     out: str | Path,
     show_progress: bool = True,
     model: TaskModel | None = None,
+    resume: bool = False,
 ) -> dict:
     """Run :func:`recover_firefly2d` (on ``model``'s task where given) into ``out``:
     ``config.yaml``, ``summary.json``, ``trials/`` (the simulated data with truth and
-    recovered beliefs) and figures."""
+    recovered beliefs) and figures. Each fit is kept in ``out/stages`` as it finishes; with
+    ``resume`` those an earlier, interrupted run of the same settings finished are read
+    instead of fitted again (the same numbers; ``summary["resumed"]`` names them)."""
+    config.validate(model)
     out = Path(out)
+    stages = recovery_stages(config, out, model, resume)
     with torch_settings(config.threads, True):
         bars: dict[str, tqdm] = {}
 
@@ -570,12 +600,13 @@ def run_recovery(
                 bars[method] = tqdm(total=n, desc=desc, disable=not show_progress)
             bars[method].update(1)
 
-        trials, summary, _ = recover_firefly2d(config, progress, model)
+        trials, summary, _ = recover_firefly2d(config, progress, model, stages)
         for bar in bars.values():
             bar.close()
     # written once the run has worked: a refused checkpoint or config leaves no folder behind
     write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
     write_recovery(trials.cpu(), summary, out)
+    stages.prune()
     return summary
 
 
@@ -652,6 +683,8 @@ def _belief_arrays(trials: TensorDict, method: str, agent: int, dt: float) -> di
 def format_recovery(summary: dict) -> str:
     """A readable table of the recovery, one block per estimator."""
     lines = []
+    if summary.get("resumed"):
+        lines.append(f"resumed: {', '.join(summary['resumed'])} read from the earlier run")
     for method, entry in summary["methods"].items():
         beliefs = entry["beliefs"]
         lines.append(

@@ -78,9 +78,13 @@ class Intervals:
         r = (self.covariance / scale).clamp(-1, 1)  # |r| ≤ 1 beyond rounding
         return torch.where(pair, r, torch.full_like(scale, torch.nan))
 
+    def to(self, device: torch.device | str) -> Intervals:
+        """These intervals on ``device``."""
+        return Intervals(*(getattr(self, f.name).to(device) for f in dataclasses.fields(self)))
+
     def cpu(self) -> Intervals:
         """These intervals on the CPU."""
-        return Intervals(*(getattr(self, f.name).cpu() for f in dataclasses.fields(self)))
+        return self.to("cpu")
 
     @staticmethod
     def cat(parts: Sequence[Intervals]) -> Intervals:

@@ -1,0 +1,243 @@
+"""Resuming a long run: each fit kept as it finishes, read back by a run of the same key only,
+and an interrupted recovery or fit of recordings resumed to the numbers of an uninterrupted
+one."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from irc_torchrl.algorithms import recordings, recover2d
+from irc_torchrl.algorithms.fit import FitResult
+from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recovery_stages, run_recovery
+from irc_torchrl.algorithms.stages import Stages, stage_key
+from irc_torchrl.checkpoint import resolve_checkpoint
+from irc_torchrl.cli import main
+from irc_torchrl.config import FitConfig, RecordingFitConfig
+from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.objectives.fisher import fisher_intervals
+
+#: a recovery small enough for seconds, with both estimators and two calibration datasets
+TINY = dict(
+    n_prior_agents=2, n_mistaken_agents=0, n_trials=10, calibrate=2, threads=1,
+    fit=FitConfig(n_screen=2, n_starts=1, max_iter=5, curvature="bfgs", covariance="sandwich"),
+)  # fmt: skip
+
+
+class Interrupted(Exception):
+    """A run stopped part-way (a killed job)."""
+
+
+def _result(seed: int, n: int = 3) -> FitResult:
+    """A fit result of ``n`` agents with random θ̂, curvature and nuisance."""
+    space = Firefly2DModel().theta_space
+    g = torch.Generator().manual_seed(seed)
+    theta = space.sample((n,), generator=g, dtype=torch.float64)
+    k = len(space.free_names)
+    root = torch.randn(n, k, k, generator=g, dtype=torch.float64)
+    hessian = root @ root.transpose(1, 2) + torch.eye(k, dtype=torch.float64)
+    u = space.to_unconstrained(theta)[:, space.free_mask]
+    information = torch.eye(k + 2, dtype=torch.float64).repeat(n, 1, 1)
+    information[:, :k, :k] = hessian
+    return FitResult(
+        theta_hat=theta,
+        nuisance=torch.randn(n, 2, generator=g, dtype=torch.float64),
+        log_likelihood=torch.randn(n, generator=g, dtype=torch.float64),
+        intervals=fisher_intervals(space, theta, u, hessian),
+        converged=torch.rand(n, generator=g) < 0.5,
+        iterations=7,
+        names=space.names,
+        information=information,
+    )
+
+
+def _same(a: FitResult, b: FitResult) -> bool:
+    """Whether two results are equal in every field, bit for bit."""
+    state_a, state_b = a.state_dict(), b.state_dict()
+    tensors = [(state_a[k], state_b[k]) for k in FitResult._PER_AGENT]
+    tensors += [(state_a["intervals"][k], state_b["intervals"][k]) for k in state_a["intervals"]]
+    plain = (a.iterations, list(a.names)) == (b.iterations, list(b.names))
+    return plain and all(torch.equal(x, y) and x.dtype == y.dtype for x, y in tensors)
+
+
+def test_a_stage_is_read_back_only_by_a_resuming_run_of_its_key(tmp_path):
+    """Saved bit for bit with its seconds; a run not resuming, or of another key, fits again
+    (and overwrites); an unreadable stage file is fitted again, not an error; no folder keeps
+    nothing."""
+    calls = []
+
+    def work(seed: int):
+        def fit() -> FitResult:
+            calls.append(seed)
+            return _result(seed)
+
+        return fit
+
+    first, seconds = Stages(tmp_path, "k1").fit("fit_map", work(0))
+    assert calls == [0] and (tmp_path / "fit_map.pt").is_file() and seconds >= 0
+    again = Stages(tmp_path, "k1", resume=True)
+    read, read_seconds = again.fit("fit_map", work(1))
+    assert calls == [0] and again.reused == ["fit_map"] and read_seconds == seconds
+    assert _same(read, first)
+    assert not _same(Stages(tmp_path, "k1").fit("fit_map", work(2))[0], first)  # not resuming
+    other = Stages(tmp_path, "k2", resume=True)
+    assert _same(other.fit("fit_map", work(3))[0], _result(3)) and other.reused == []
+    assert calls == [0, 2, 3]
+    path = tmp_path / "fit_map.pt"
+    path.write_bytes(path.read_bytes()[:-200])  # truncated
+    assert _same(Stages(tmp_path, "k2", resume=True).fit("fit_map", work(4))[0], _result(4))
+    nowhere = Stages(None, "k1", resume=True)
+    nowhere.fit("fit_map", work(5))
+    assert calls[-1] == 5 and nowhere.reused == []
+
+
+def test_pruning_keeps_the_stages_of_this_key_only(tmp_path):
+    Stages(tmp_path, "old").fit("calibration3_map", lambda: _result(0))
+    stages = Stages(tmp_path, "new")
+    stages.fit("fit_map", lambda: _result(1))
+    Stages(tmp_path, "new").fit("calibration2_map", lambda: _result(2))  # unused, same key
+    (tmp_path / "notes.pt").write_text("not a stage")
+    stages.prune()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration2_map.pt", "fit_map.pt"]
+
+
+def test_the_key_follows_settings_checkpoint_data_and_a_tasks_source(tmp_path):
+    checkpoint = resolve_checkpoint("firefly2d")
+    copy = tmp_path / "copy.pt"
+    copy.write_bytes(checkpoint.read_bytes())
+    data = TensorDict({"state": torch.zeros(2, 3)}, batch_size=[2])
+    key = stage_key({"seed": 0}, checkpoint, None, [data])
+    assert key == stage_key({"seed": 0}, copy, None, [data.clone()])  # contents, not paths
+    copy.write_bytes(checkpoint.read_bytes() + b"\0")
+    changed = [
+        stage_key({"seed": 1}, checkpoint, None, [data]),
+        stage_key({"seed": 0}, copy, None, [data]),
+        stage_key({"seed": 0}, checkpoint, None, [data.apply(lambda x: x + 1)]),
+        stage_key({"seed": 0}, checkpoint, None, [data, data]),
+        stage_key({"seed": 0}, checkpoint, Firefly2DModel(), [data]),
+    ]
+    assert len({key, *changed}) == 6
+
+
+def _strip(summary: dict) -> dict:
+    """A summary without what differs between two runs of the same numbers: wall times."""
+    summary = json.loads(json.dumps(summary))
+    summary.pop("timings")
+    summary.pop("resumed", None)
+    for entry in summary.get("methods", {}).values():
+        entry.pop("fit_s", None)
+    return summary
+
+
+def _interrupt_at_dataset(monkeypatch, module, n: int) -> None:
+    """Stop ``module``'s run when it simulates its ``n``-th calibration dataset."""
+    simulate, calls = module.simulate_at_fits, []
+
+    def stop(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == n:
+            raise Interrupted
+        return simulate(*args, **kwargs)
+
+    monkeypatch.setattr(module, "simulate_at_fits", stop)
+
+
+def _count_fits(monkeypatch, module) -> list[str]:
+    """The methods of the fits ``module`` runs from now on."""
+    fit, methods = module.fit_theta, []
+
+    def counted(loss, *args, **kwargs):
+        methods.append(loss.method)
+        return fit(loss, *args, **kwargs)
+
+    monkeypatch.setattr(module, "fit_theta", counted)
+    return methods
+
+
+def test_an_interrupted_recovery_resumes_to_the_uninterrupted_numbers(tmp_path, monkeypatch):
+    """Stopped while simulating its second calibration dataset, a recovery resumed fits only
+    that dataset and ends with the summary and trials of one never stopped; rerun with a third
+    dataset, it fits only the third."""
+    config = Recovery2DConfig(**TINY)
+    whole = run_recovery(config, tmp_path / "whole", show_progress=False)
+    with monkeypatch.context() as patch:
+        _interrupt_at_dataset(patch, recover2d, 2)
+        with pytest.raises(Interrupted):
+            run_recovery(config, tmp_path / "run", show_progress=False)
+    assert not (tmp_path / "run" / "summary.json").exists()
+    fits = _count_fits(monkeypatch, recover2d)
+    resumed = run_recovery(config, tmp_path / "run", show_progress=False, resume=True)
+    assert fits == ["map", "marginal"]
+    assert resumed["resumed"] == ["fit_map", "fit_marginal", "calibration1_map",
+                                  "calibration1_marginal"]  # fmt: skip
+    assert _strip(resumed) == _strip(whole)
+    run, reference = (TensorDict.load_memmap(tmp_path / d / "trials") for d in ("run", "whole"))
+    assert (run == reference).all()
+    more = Recovery2DConfig(**{**TINY, "calibrate": 3})
+    extended = run_recovery(more, tmp_path / "run", show_progress=False, resume=True)
+    assert fits == ["map", "marginal"] * 2
+    assert extended["methods"]["marginal"]["calibrated"]["n_datasets"] == 3
+    stages = sorted(p.stem for p in (tmp_path / "run" / "stages").iterdir())
+    names = ("fit", "calibration1", "calibration2", "calibration3")
+    assert stages == sorted(f"{s}_{m}" for s in names for m in ("map", "marginal"))
+
+
+def test_a_recovery_of_other_settings_refits_and_leaves_only_its_own_stages(tmp_path, monkeypatch):
+    """Every fit replaced by a fixed result: another seed keys other stages, so resuming fits
+    all again, and the earlier run's stages beyond this run's (a third dataset) are removed."""
+    methods = []
+
+    def fit(loss, held, **kwargs):
+        methods.append(loss.method)
+        return _result(len(methods), held.shape[0])
+
+    monkeypatch.setattr(recover2d, "fit_theta", fit)
+    monkeypatch.setattr(recover2d, "_truth_check", lambda *args: {})
+    monkeypatch.setattr(recover2d, "write_recovery", lambda *args: None)
+    first = Recovery2DConfig(**{**TINY, "calibrate": 3})
+    run_recovery(first, tmp_path, show_progress=False)
+    assert len(methods) == 8
+    second = Recovery2DConfig(**{**TINY, "seed": 1})
+    assert recovery_stages(second, tmp_path).key != recovery_stages(first, tmp_path).key
+    summary = run_recovery(second, tmp_path, show_progress=False, resume=True)
+    assert len(methods) == 14 and "resumed" not in summary
+    assert sorted(p.stem for p in (tmp_path / "stages").iterdir()) == sorted(
+        f"{s}_{m}" for s in ("fit", "calibration1", "calibration2") for m in ("map", "marginal")
+    )
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> list[Path]:
+    """Three simulated agents of 8 trials each, as CSV recordings."""
+    out = tmp_path_factory.mktemp("recorded")
+    assert main(["simulate", "--out", str(out), "--quiet", "n_agents=3", "n_trials=8",
+                 "threads=1"]) == 0  # fmt: skip
+    return sorted(out.glob("agent*.csv"))
+
+
+def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
+    recorded, tmp_path, monkeypatch, capsys
+):
+    """``irc fit --resume`` after a fit stopped in its second calibration dataset refits only
+    that dataset, says what it read, and writes the summary of a fit never stopped."""
+    files = [str(p) for p in recorded]
+    settings = ["n_screen=2", "n_starts=1", "max_iter=5", "calibrate=2", "threads=1"]
+    whole = RecordingFitConfig(n_screen=2, n_starts=1, max_iter=5, calibrate=2, threads=1)
+    recordings.fit_recordings(files, tmp_path / "whole", whole, progress=False)
+    out = str(tmp_path / "run")
+    with monkeypatch.context() as patch:
+        _interrupt_at_dataset(patch, recordings, 2)
+        with pytest.raises(Interrupted):
+            main(["fit", *files, "--out", out, "--quiet", *settings])
+    fits = _count_fits(monkeypatch, recordings)
+    assert main(["fit", *files, "--out", out, "--quiet", "--resume", *settings]) == 0
+    assert fits == ["map", "marginal"]
+    printed = capsys.readouterr().out
+    assert "resumed: fit_8trials_map, fit_8trials_marginal, calibration1_8trials_map" in printed
+    summary, reference = (json.loads((tmp_path / d / "summary.json").read_text()) for d in
+                          ("run", "whole"))  # fmt: skip
+    assert _strip(summary) == _strip(reference)
