@@ -68,8 +68,8 @@ def _run_recovery(
     drawn = any(Path(args.out).glob("beliefs_overhead_*.png"))  # for a position in the plane
     overhead = "beliefs_overhead_*.png, " if drawn else ""
     print(
-        f"wrote {args.out}/: summary.json, config.yaml, trials/ and figures "
-        f"(recovery_*.png, {overhead}beliefs_time_*.png)"
+        f"wrote {args.out}/: summary.json, config.yaml, trials/, stages/ (the fits) and "
+        f"figures (recovery_*.png, {overhead}beliefs_time_*.png)"
     )
     return 0
 
@@ -223,7 +223,7 @@ def _fit(args: argparse.Namespace) -> int:
         resume=args.resume,
     )
     print(format_fit(summary))
-    print(f"wrote {args.out}/: summary.json, beliefs.npz and figures (PNG)")
+    print(f"wrote {args.out}/: summary.json, beliefs.npz, stages/ (the fits) and figures (PNG)")
     return 0
 
 

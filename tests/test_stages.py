@@ -14,7 +14,7 @@ from tensordict import TensorDict
 from irc_torchrl.algorithms import recordings, recover2d
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recovery_stages, run_recovery
-from irc_torchrl.algorithms.stages import Stages, stage_key
+from irc_torchrl.algorithms.stages import Stages, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
 from irc_torchrl.cli import main
 from irc_torchrl.config import FitConfig, RecordingFitConfig
@@ -101,6 +101,7 @@ def test_pruning_keeps_the_stages_of_this_key_only(tmp_path):
     stages.fit("fit_map", lambda: _result(1))
     Stages(tmp_path, "new").fit("calibration2_map", lambda: _result(2))  # unused, same key
     (tmp_path / "notes.pt").write_text("not a stage")
+    (tmp_path / ".fit_marginal.pt.x1y2.tmp").write_text("")  # a save killed part-way
     stages.prune()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration2_map.pt", "fit_map.pt"]
 
@@ -121,6 +122,76 @@ def test_the_key_follows_settings_checkpoint_data_and_a_tasks_source(tmp_path):
         stage_key({"seed": 0}, checkpoint, Firefly2DModel(), [data]),
     ]
     assert len({key, *changed}) == 6
+
+
+def test_a_recoverys_key_reads_the_checkpoints_contents_the_task_and_the_trials(tmp_path):
+    """The same checkpoint under another path keys the same stages; a task built otherwise,
+    or other simulated trials, other ones."""
+    copy = tmp_path / "copy.pt"
+    copy.write_bytes(resolve_checkpoint("firefly2d").read_bytes())
+    packaged = recovery_stages(Recovery2DConfig(**TINY), tmp_path)
+    assert recovery_stages(Recovery2DConfig(**TINY, checkpoint=str(copy)), tmp_path).key == (
+        packaged.key
+    )
+    settings = {"seed": 0}
+    checkpoint = resolve_checkpoint("firefly2d")
+    shorter = stage_key(settings, checkpoint, Firefly2DModel(max_steps=40))
+    assert shorter != stage_key(settings, checkpoint, Firefly2DModel())
+    assert stage_key(settings, checkpoint, Firefly2DModel()) == stage_key(
+        settings, checkpoint, Firefly2DModel()
+    )  # no object's address in the key
+    trials = TensorDict({"state": torch.zeros(2, 3)}, batch_size=[2])
+    keys = []
+    for data in (trials, trials.clone(), trials + 1):
+        stages = recovery_stages(Recovery2DConfig(**TINY), tmp_path)
+        stages.include([data])
+        keys.append(stages.key)
+    assert keys[0] == keys[1] != keys[2] and packaged.key not in keys
+
+
+def test_a_fit_of_recordings_is_keyed_by_what_its_fits_depend_on(tmp_path):
+    """Free parameters, seed, device, any setting the fits read, the recordings and the
+    checkpoint key other stages; the method (map's fit is the same whichever follows), the
+    particle check and the calibration's size and tail do not."""
+    model = Firefly2DModel()
+    checkpoint = resolve_checkpoint("firefly2d")
+    data = [TensorDict({"state": torch.zeros(4, 3)}, batch_size=[4])]
+    settings = {"free": ["g_v", "g_w"], "seed": 0, "device": "cpu"}
+
+    def key(config=None, changed=None, recorded=data, policy=checkpoint):
+        given = {**settings, **(changed or {})}
+        config = config or RecordingFitConfig()
+        stages = recordings.recording_stages(
+            tmp_path, config, given, policy, model, recorded, resume=True
+        )
+        return stages.key
+
+    same = [
+        key(RecordingFitConfig(particles=1000)),
+        key(RecordingFitConfig(calibrate=3, calibration_tail="own")),
+    ]
+    copy = tmp_path / "copy.pt"
+    copy.write_bytes(checkpoint.read_bytes() + b"\0")
+    other = [
+        key(changed={"free": ["g_v"]}),
+        key(changed={"seed": 1}),
+        key(changed={"device": "cuda:0"}),
+        key(RecordingFitConfig(max_iter=7)),
+        key(RecordingFitConfig(motor_noise=0.2)),
+        key(RecordingFitConfig(units={"x": "cm"})),
+        key(RecordingFitConfig(theta={"goal_radius": 0.3})),
+        key(recorded=[data[0] + 1]),
+        key(policy=copy),
+    ]
+    assert set(same) == {key()} and len({key(), *other}) == len(other) + 1
+
+
+def test_a_resuming_run_says_what_it_read(tmp_path):
+    assert format_resumed({}) == []
+    assert format_resumed({"resumed": ["fit_map"]}) == [
+        "resumed: fit_map read from the earlier run"
+    ]
+    assert "every fit ran anew" in format_resumed({"resumed": []})[0]
 
 
 def _strip(summary: dict) -> dict:
@@ -204,7 +275,7 @@ def test_a_recovery_of_other_settings_refits_and_leaves_only_its_own_stages(tmp_
     second = Recovery2DConfig(**{**TINY, "seed": 1})
     assert recovery_stages(second, tmp_path).key != recovery_stages(first, tmp_path).key
     summary = run_recovery(second, tmp_path, show_progress=False, resume=True)
-    assert len(methods) == 14 and "resumed" not in summary
+    assert len(methods) == 14 and summary["resumed"] == []
     assert sorted(p.stem for p in (tmp_path / "stages").iterdir()) == sorted(
         f"{s}_{m}" for s in ("fit", "calibration1", "calibration2") for m in ("map", "marginal")
     )

@@ -40,7 +40,7 @@ from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
-from irc_torchrl.algorithms.stages import Stages, fit_settings, stage_key
+from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import (
     earlier_summary,
@@ -65,6 +65,7 @@ __all__ = [
     "fit_recordings",
     "fit_space",
     "format_fit",
+    "recording_stages",
     "simulate_recordings",
 ]
 
@@ -340,15 +341,8 @@ def fit_recordings(
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
-        settings = {
-            "config": fit_settings(config),
-            "method": method,
-            "free": space.free_names,
-            "seed": seed,
-            "device": str(target),
-        }
-        key = stage_key(settings, ckpt["path"], model, recordings)
-        stages = Stages(out / "stages", key, resume)
+        settings = {"free": space.free_names, "seed": seed, "device": str(target)}
+        stages = recording_stages(out, config, settings, ckpt["path"], model, recordings, resume)
         fits, beliefs, timings, checks, per_trial = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress, stages
         )
@@ -394,8 +388,7 @@ def fit_recordings(
         summary["methods"] = by_method
     summary["state_names"] = list(model.state_names)
     summary["state_units"] = [_in_metres(unit, config.units) for unit in model.state_units]
-    if stages.reused:
-        summary["resumed"] = stages.reused
+    stages.summarise(summary)
     earlier = _earlier_agents(out, "fit")
     _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs, per_trial[primary])
     write_json(out / "summary.json", summary)
@@ -412,6 +405,24 @@ def fit_recordings(
         ]
         remove_stale(out, figures, written)
     return summary
+
+
+def recording_stages(
+    out: str | Path,
+    config: RecordingFitConfig,
+    settings: Mapping[str, Any],
+    checkpoint: str | Path,
+    model: TaskModel,
+    recordings: Sequence[TensorDictBase],
+    resume: bool = False,
+) -> Stages:
+    """The :class:`Stages` of a fit of ``recordings`` into ``out`` (``out/stages``), keyed by
+    ``config``'s fields its fits depend on (:func:`fit_settings`), the other ``settings``
+    (free parameters, seed, device), the policy's ``checkpoint``, the task ``model`` and the
+    recordings. Not by the method: map's fit is the same whichever follows it, and the stages
+    are named by theirs."""
+    key = stage_key({"config": fit_settings(config), **settings}, checkpoint, model, recordings)
+    return Stages(Path(out) / "stages", key, resume)
 
 
 def _by_trial_count(recordings: list[TensorDict]) -> dict[int, list[int]]:
@@ -717,8 +728,7 @@ def format_fit(summary: dict[str, Any]) -> str:
     """A readable table per recording: θ̂, its 95% interval, the truth if known, identified."""
     units = summary.get("units", {})
     lines = []
-    if summary.get("resumed"):
-        lines.append(f"resumed: {', '.join(summary['resumed'])} read from the earlier run")
+    lines += format_resumed(summary)
     for method, part in (summary.get("methods") or {summary["method"]: summary}).items():
         for agent in part["agents"]:
             truth = agent.get("theta_true")

@@ -49,7 +49,7 @@ from irc_torchrl.algorithms.fit import (
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
-from irc_torchrl.algorithms.stages import Stages, fit_settings, stage_key
+from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
 from irc_torchrl.checks import check_fields
 from irc_torchrl.config import (
@@ -346,6 +346,7 @@ def recover_firefly2d(
     )
     timings = {"simulate_s": time.perf_counter() - start}
     held = trials.select(*RECORDED)
+    stages.include([held])
     n_agents = theta_true.shape[0]
     summary: dict = {
         "task": config.task,
@@ -414,8 +415,7 @@ def recover_firefly2d(
             }
         timings["calibrate_s"] = time.perf_counter() - begin
     summary["timings"] = timings
-    if stages.reused:
-        summary["resumed"] = stages.reused
+    stages.summarise(summary)
     return trials, summary, {method: fit.result for method, fit in fitted.items()}
 
 
@@ -570,9 +570,11 @@ def recovery_stages(
     config: Recovery2DConfig, out: str | Path, model: TaskModel | None = None, resume: bool = False
 ) -> Stages:
     """The :class:`Stages` of a recovery into ``out`` (``out/stages``), keyed by every setting
-    its fits depend on (:func:`fit_settings`), the policy's checkpoint and, for a task of the
-    user's own, its source."""
-    key = stage_key(fit_settings(config), resolve_checkpoint(config.checkpoint), model)
+    its fits depend on (:func:`fit_settings`), the policy's checkpoint, a task of the user's
+    own and, once :func:`recover_firefly2d` has simulated them, the agents' trials."""
+    settings = fit_settings(config)
+    del settings["checkpoint"]  # its contents, not its path
+    key = stage_key(settings, resolve_checkpoint(config.checkpoint), model)
     return Stages(Path(out) / "stages", key, resume)
 
 
@@ -683,8 +685,7 @@ def _belief_arrays(trials: TensorDict, method: str, agent: int, dt: float) -> di
 def format_recovery(summary: dict) -> str:
     """A readable table of the recovery, one block per estimator."""
     lines = []
-    if summary.get("resumed"):
-        lines.append(f"resumed: {', '.join(summary['resumed'])} read from the earlier run")
+    lines += format_resumed(summary)
     for method, entry in summary["methods"].items():
         beliefs = entry["beliefs"]
         lines.append(

@@ -15,12 +15,15 @@ import functools
 import hashlib
 import inspect
 import json
+import re
 import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+import tensordict
 import torch
+import torchrl
 from tensordict import TensorDictBase
 
 import irc_torchrl
@@ -30,12 +33,14 @@ from irc_torchrl.config import config_to_dict
 from irc_torchrl.data.files import atomic_path
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["AFTER_FITS", "Stages", "fit_settings", "stage_key"]
+__all__ = ["AFTER_FITS", "Stages", "fit_settings", "format_resumed", "stage_key"]
 
 #: the settings that act only once the fits are done (a check of them, how many datasets
 #: calibrate their intervals and how the factors read their tails): a rerun that changes them
 #: reuses the fits, and one with more calibration datasets the refits already done
 AFTER_FITS = ("particles", "calibrate", "calibration_tail")
+#: the address in an object's default repr
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
 
 
 def fit_settings(config: Any) -> dict[str, Any]:
@@ -54,24 +59,47 @@ def stage_key(
     data: Iterable[TensorDictBase] = (),
 ) -> str:
     """A digest of what a run's fits depend on: its ``settings`` (JSON-like), the policy's
-    ``checkpoint`` file, the source of a task of the user's own (``model``), the recorded
-    ``data`` in order, and the library's code and torch's version."""
+    ``checkpoint`` file, the task ``model`` (its class's source and its attributes), the
+    recorded ``data`` in order, and the versions of the library's code, torch, torchrl and
+    tensordict."""
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
     digest.update(hashlib.sha256(Path(checkpoint).read_bytes()).digest())
     if model is not None:
-        task = type(model)
-        digest.update(f"{task.__module__}.{task.__qualname__}".encode())
-        try:
-            digest.update(Path(inspect.getfile(task)).read_bytes())
-        except (OSError, TypeError):  # a class without a source file: its name alone
-            pass
+        _digest_model(digest, model)
+    _digest_data(digest, data)
+    versions = (torch.__version__, torchrl.__version__, tensordict.__version__)
+    digest.update(f"{_code_digest()} {versions}".encode())
+    return digest.hexdigest()
+
+
+def _digest_model(digest: Any, model: TaskModel) -> None:
+    """Feed a task model to ``digest``: its class, the class's source where it has one (a class
+    defined in a notebook has none), and its attributes (what it was built with)."""
+    task = type(model)
+    digest.update(f"{task.__module__}.{task.__qualname__}".encode())
+    try:
+        digest.update(Path(inspect.getfile(task)).read_bytes())
+    except (OSError, TypeError):
+        pass
+    for name, value in sorted(vars(model).items()):
+        if isinstance(value, torch.Tensor):
+            _digest_tensor(digest, name, value)
+        else:  # an object's default repr names its address, which no other process shares
+            digest.update(f"{name}={_ADDRESS.sub('', repr(value))}".encode())
+
+
+def _digest_data(digest: Any, data: Iterable[TensorDictBase]) -> None:
+    """Feed every tensor of ``data`` to ``digest``, in order, with its key, dtype and shape."""
     for trials in data:
         for key in sorted(trials.keys(True, True), key=str):
-            value = trials[key].detach().cpu().contiguous()
-            digest.update(f"{key}{value.dtype}{list(value.shape)}".encode())
-            digest.update(value.reshape(-1).view(torch.uint8).numpy().tobytes())
-    digest.update(f"{_code_digest()} torch {torch.__version__}".encode())
-    return digest.hexdigest()
+            _digest_tensor(digest, str(key), trials[key])
+
+
+def _digest_tensor(digest: Any, name: str, value: torch.Tensor) -> None:
+    """Feed one tensor's name, dtype, shape and bytes to ``digest``."""
+    value = value.detach().cpu().contiguous()
+    digest.update(f"{name}{value.dtype}{list(value.shape)}".encode())
+    digest.update(value.reshape(-1).view(torch.uint8).numpy().tobytes())
 
 
 @functools.cache
@@ -92,11 +120,20 @@ class Stages:
     fitted; ``reused`` names those, in order.
     """
 
-    def __init__(self, folder: str | Path | None = None, key: str = "", resume: bool = False):
+    def __init__(
+        self, folder: str | Path | None = None, key: str = "", resume: bool = False
+    ) -> None:
         self.folder = None if folder is None else Path(folder)
         self.key = key
         self.resume = resume
         self.reused: list[str] = []
+
+    def include(self, data: Iterable[TensorDictBase]) -> None:
+        """Key the stages by ``data`` too: trials the run simulates itself, once simulated
+        (they show any change of the task that its settings and source do not)."""
+        digest = hashlib.sha256(self.key.encode())
+        _digest_data(digest, data)
+        self.key = digest.hexdigest()
 
     def fit(
         self, name: str, work: Callable[[], FitResult], device: torch.device | str = "cpu"
@@ -117,13 +154,20 @@ class Stages:
         return result, seconds
 
     def prune(self) -> None:
-        """Remove the stages of other keys (another run's settings, an older library), so
-        that those left belong to the run finished beside them."""
+        """Remove the stages of other keys (another run's settings, an older library) and
+        what a killed save left, so that those left belong to the run finished beside them."""
         if self.folder is None or not self.folder.is_dir():
             return
         for path in self.folder.glob("*.pt"):
             if self._load(path) is None:
                 path.unlink()
+        for path in self.folder.glob(".*.pt.*.tmp"):  # atomic_path's temporaries
+            path.unlink()
+
+    def summarise(self, summary: dict) -> None:
+        """Name the stages read (``summary["resumed"]``) in a resuming run's summary."""
+        if self.resume:
+            summary["resumed"] = self.reused
 
     def _read(self, name: str) -> tuple[FitResult, float] | None:
         """Stage ``name`` of this key, or ``None`` where none is kept (or it is unreadable)."""
@@ -146,3 +190,12 @@ class Stages:
         if not isinstance(stage, dict) or stage.get("key") != self.key:
             return None
         return stage
+
+
+def format_resumed(summary: Mapping[str, Any]) -> list[str]:
+    """The line saying which fits a resuming run read (none for a run that did not resume)."""
+    if "resumed" not in summary:
+        return []
+    if not summary["resumed"]:
+        return ["resumed: no fit of these settings was kept in the folder; every fit ran anew"]
+    return [f"resumed: {', '.join(summary['resumed'])} read from the earlier run"]
