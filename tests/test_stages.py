@@ -137,9 +137,6 @@ def test_a_recoverys_key_reads_the_checkpoints_contents_the_task_and_the_trials(
     checkpoint = resolve_checkpoint("firefly2d")
     shorter = stage_key(settings, checkpoint, Firefly2DModel(max_steps=40))
     assert shorter != stage_key(settings, checkpoint, Firefly2DModel())
-    assert stage_key(settings, checkpoint, Firefly2DModel()) == stage_key(
-        settings, checkpoint, Firefly2DModel()
-    )  # no object's address in the key
     trials = TensorDict({"state": torch.zeros(2, 3)}, batch_size=[2])
     keys = []
     for data in (trials, trials.clone(), trials + 1):
@@ -161,10 +158,9 @@ def test_a_fit_of_recordings_is_keyed_by_what_its_fits_depend_on(tmp_path):
     def key(config=None, changed=None, recorded=data, policy=checkpoint):
         given = {**settings, **(changed or {})}
         config = config or RecordingFitConfig()
-        stages = recordings.recording_stages(
-            tmp_path, config, given, policy, model, recorded, resume=True
-        )
-        return stages.key
+        return recordings.recording_stages(
+            tmp_path, config, policy, model, recorded, **given, resume=True
+        ).key
 
     same = [
         key(RecordingFitConfig(particles=1000)),
@@ -183,7 +179,28 @@ def test_a_fit_of_recordings_is_keyed_by_what_its_fits_depend_on(tmp_path):
         key(recorded=[data[0] + 1]),
         key(policy=copy),
     ]
+    other.append(
+        recordings.recording_stages(
+            tmp_path, RecordingFitConfig(), checkpoint, Firefly2DModel(max_steps=40), data,
+            **settings,
+        ).key
+    )  # fmt: skip
     assert set(same) == {key()} and len({key(), *other}) == len(other) + 1
+
+
+class _Tuned(Firefly2DModel):
+    """A task holding a tensor and a plain object (whose repr names its address)."""
+
+    def __init__(self, scale: float = 1.0):
+        super().__init__()
+        self.scale = torch.tensor([scale])
+        self.helper = object()
+
+
+def test_a_tasks_tensors_key_its_stages_and_object_addresses_do_not():
+    checkpoint = resolve_checkpoint("firefly2d")
+    keys = [stage_key({}, checkpoint, model) for model in (_Tuned(), _Tuned(), _Tuned(2.0))]
+    assert keys[0] == keys[1] != keys[2]
 
 
 def test_a_resuming_run_says_what_it_read(tmp_path):
@@ -279,6 +296,19 @@ def test_a_recovery_of_other_settings_refits_and_leaves_only_its_own_stages(tmp_
     assert sorted(p.stem for p in (tmp_path / "stages").iterdir()) == sorted(
         f"{s}_{m}" for s in ("fit", "calibration1", "calibration2") for m in ("map", "marginal")
     )
+    resumed = run_recovery(second, tmp_path, show_progress=False, resume=True)
+    assert len(methods) == 14 and len(resumed["resumed"]) == 6
+    # the same settings, but trials simulated otherwise (a task changed where no key reads)
+    simulate = recover2d.simulate_recovery_agents
+
+    def changed(*args, **kwargs):
+        trials, theta, mistaken = simulate(*args, **kwargs)
+        trials["action"] = trials["action"] * 0.5
+        return trials, theta, mistaken
+
+    monkeypatch.setattr(recover2d, "simulate_recovery_agents", changed)
+    again = run_recovery(second, tmp_path, show_progress=False, resume=True)
+    assert len(methods) == 20 and again["resumed"] == []
 
 
 @pytest.fixture(scope="module")

@@ -341,8 +341,9 @@ def fit_recordings(
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
-        settings = {"free": space.free_names, "seed": seed, "device": str(target)}
-        stages = recording_stages(out, config, settings, ckpt["path"], model, recordings, resume)
+        stages = recording_stages(
+            out, config, ckpt["path"], model, recordings, space.free_names, seed, target, resume
+        )
         fits, beliefs, timings, checks, per_trial = _fit_groups(
             model, action_model, space, recordings, config, method, seed, target, progress, stages
         )
@@ -410,19 +411,22 @@ def fit_recordings(
 def recording_stages(
     out: str | Path,
     config: RecordingFitConfig,
-    settings: Mapping[str, Any],
     checkpoint: str | Path,
     model: TaskModel,
     recordings: Sequence[TensorDictBase],
+    free: Sequence[str],
+    seed: int,
+    device: torch.device | str,
     resume: bool = False,
 ) -> Stages:
     """The :class:`Stages` of a fit of ``recordings`` into ``out`` (``out/stages``), keyed by
-    ``config``'s fields its fits depend on (:func:`fit_settings`), the other ``settings``
-    (free parameters, seed, device), the policy's ``checkpoint``, the task ``model`` and the
-    recordings. Not by the method: map's fit is the same whichever follows it, and the stages
+    ``config``'s fields its fits depend on (:func:`fit_settings`), the policy's
+    ``checkpoint``, the task ``model``, the recordings, the ``free`` parameters, ``seed`` and
+    ``device``. Not by the method: map's fit is the same whichever follows it, and the stages
     are named by theirs."""
-    key = stage_key({"config": fit_settings(config), **settings}, checkpoint, model, recordings)
-    return Stages(Path(out) / "stages", key, resume)
+    settings = {"config": fit_settings(config), "free": list(free), "seed": seed}
+    settings["device"] = str(torch.device(device))
+    return Stages(Path(out) / "stages", stage_key(settings, checkpoint, model, recordings), resume)
 
 
 def _by_trial_count(recordings: list[TensorDict]) -> dict[int, list[int]]:
