@@ -731,8 +731,7 @@ def _traded_off(correlation: Mapping[str, Mapping[str, float | None]]) -> str:
 def format_fit(summary: dict[str, Any]) -> str:
     """A readable table per recording: θ̂, its 95% interval, the truth if known, identified."""
     units = summary.get("units", {})
-    lines = []
-    lines += format_resumed(summary)
+    lines = format_resumed(summary)
     for method, part in (summary.get("methods") or {summary["method"]: summary}).items():
         for agent in part["agents"]:
             truth = agent.get("theta_true")

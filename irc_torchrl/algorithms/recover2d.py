@@ -684,8 +684,7 @@ def _belief_arrays(trials: TensorDict, method: str, agent: int, dt: float) -> di
 
 def format_recovery(summary: dict) -> str:
     """A readable table of the recovery, one block per estimator."""
-    lines = []
-    lines += format_resumed(summary)
+    lines = format_resumed(summary)
     for method, entry in summary["methods"].items():
         beliefs = entry["beliefs"]
         lines.append(

@@ -4,9 +4,9 @@
 Each fit of a run (one estimator on the recorded trials, or on one calibration dataset) is a
 stage, saved as ``stages/NAME.pt`` once finished, tensors and plain values only (read back
 with ``torch.load(weights_only=True)``), beside a key: a digest of everything the fit depends
-on (the run's settings, the policy's checkpoint, the recorded data, the library's code and
-torch's version). A run that resumes reads a stage instead of fitting only where the keys
-match; any other stage is fitted again.
+on (the run's settings, the policy's checkpoint, the task, the trials, the library's code and
+the versions of torch, torchrl and tensordict). A run that resumes reads a stage instead of
+fitting only where the keys match; any other stage is fitted again.
 """
 
 from __future__ import annotations
