@@ -786,7 +786,7 @@ def test_calibration_simulates_each_recording_at_its_last_methods_fit_in_its_own
         return TensorDict(fields, batch_size=at.shape[:3])
 
     def refit(model, action_model, space, synthetic, config, method, *args):
-        refitted.append((method, config.particles, [s.shape[0] for s in synthetic]))
+        refitted.append((method, config.particles, [s.shape[0] for s in synthetic], args[-1]))
         at = [float(s["state"][0, 0, 0]) for s in synthetic]
         shifted = {"map": [a + 0.03 for a in at], "marginal": [a - 0.06 for a in at]}
         return {m: _fit_of(theta) for m, theta in shifted.items()}, None, None, None, None
@@ -800,7 +800,8 @@ def test_calibration_simulates_each_recording_at_its_last_methods_fit_in_its_own
     batches = [([1.5, 3.5], [0.5, 0.75], 2), ([2.5], [0.25], 1)]
     assert [call[:3] for call in simulated] == batches * 2
     assert len({call[3] for call in simulated}) == 4  # every dataset and batch its own draw
-    assert refitted == [("both", 0, [2, 1, 2])] * 2
+    # each dataset's stages named by the method whose θ̂ generates it
+    assert refitted == [("both", 0, [2, 1, 2], f"calibration{k}atmarginal") for k in (1, 2)]
     generating = fits["marginal"].theta_hat.float()
     for method, shift in (("map", 0.03), ("marginal", -0.06)):
         refits = _fit_of([a + shift for a in generating[:, 0].tolist()])

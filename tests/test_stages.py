@@ -4,12 +4,16 @@ one."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.data import Bounded
 
 from irc_torchrl.algorithms import recordings, recover2d
 from irc_torchrl.algorithms.fit import FitResult
@@ -20,6 +24,7 @@ from irc_torchrl.cli import main
 from irc_torchrl.config import FitConfig, RecordingFitConfig
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.objectives.fisher import fisher_intervals
+from irc_torchrl.theta import ThetaSpace
 
 #: a recovery small enough for seconds, with both estimators and two calibration datasets
 TINY = dict(
@@ -197,10 +202,41 @@ class _Tuned(Firefly2DModel):
         self.helper = object()
 
 
-def test_a_tasks_tensors_key_its_stages_and_object_addresses_do_not():
+def test_what_a_task_holds_keys_its_stages_and_object_addresses_do_not():
+    """Its tensors (also inside a container, where a repr rounds them), its θ space's defaults
+    and its action bounds (which their reprs do not show) key other stages; an object's address
+    and a set's order (both of the process) do not."""
     checkpoint = resolve_checkpoint("firefly2d")
     keys = [stage_key({}, checkpoint, model) for model in (_Tuned(), _Tuned(), _Tuned(2.0))]
     assert keys[0] == keys[1] != keys[2]
+    base = stage_key({}, checkpoint, Firefly2DModel())
+    nested = Firefly2DModel()
+    nested.extra = {"w": torch.tensor([1.00001])}
+    space = Firefly2DModel().theta_space
+    shifted = [dataclasses.replace(p, default=0.9) if p.name == "g_v" else p
+               for p in space.parameters]  # fmt: skip
+    wider = Firefly2DModel()
+    wider.action_spec = Bounded(-2.0, 2.0, shape=wider.action_spec.shape)
+    changed = [
+        stage_key({}, checkpoint, nested),
+        stage_key({}, checkpoint, Firefly2DModel(theta_space=ThetaSpace(shifted, space.fixed))),
+        stage_key({}, checkpoint, wider),
+    ]
+    nested.extra = {"w": torch.tensor([1.00002])}
+    changed.append(stage_key({}, checkpoint, nested))
+    assert len({base, *changed}) == 5
+    tagged = Firefly2DModel()
+    tagged.tags = frozenset(f"tag{i}" for i in range(20))
+    code = (
+        "from irc_torchrl.algorithms.stages import stage_key\n"
+        "from irc_torchrl.checkpoint import resolve_checkpoint\n"
+        "from irc_torchrl.envs.firefly2d import Firefly2DModel\n"
+        "m = Firefly2DModel()\n"
+        "m.tags = frozenset(f'tag{i}' for i in range(20))\n"
+        "print(stage_key({}, resolve_checkpoint('firefly2d'), m))\n"
+    )
+    other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert other.stdout.strip() == stage_key({}, checkpoint, tagged)  # another hash seed
 
 
 def test_a_resuming_run_says_what_it_read(tmp_path):
@@ -338,7 +374,10 @@ def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
     assert main(["fit", *files, "--out", out, "--quiet", "--resume", *settings]) == 0
     assert fits == ["map", "marginal"]
     printed = capsys.readouterr().out
-    assert "resumed: fit_8trials_map, fit_8trials_marginal, calibration1_8trials_map" in printed
+    assert (
+        "resumed: fit_8trials_map, fit_8trials_marginal, calibration1atmarginal_8trials_map"
+        in printed
+    )
     summary, reference = (json.loads((tmp_path / d / "summary.json").read_text()) for d in
                           ("run", "whole"))  # fmt: skip
     assert _strip(summary) == _strip(reference)

@@ -573,8 +573,10 @@ def _calibrate_fits(
     """Every method's :class:`Calibration` from ``config.calibrate`` datasets simulated at
     each recording's θ̂ of the last method (its motor noise, its world, its number of
     trials), fitted by :func:`_fit_groups` as the recordings were (without particle checks;
-    dataset ``k``'s fits the stages ``calibration{k + 1}_…``)."""
-    result = fits[list(fits)[-1]]
+    dataset ``k``'s fits the stages ``calibration{k + 1}at{method}_…``, named by the method
+    whose θ̂ generates the data: the stages' key leaves the method out)."""
+    last = list(fits)[-1]
+    result = fits[last]
     world = torch.stack([r["task_theta"][0, 0] for r in recordings])
     groups = _by_trial_count(recordings)
     quiet = dataclasses.replace(config, particles=0)
@@ -591,7 +593,7 @@ def _calibrate_fits(
                 synthetic[i] = simulated[j].select(*TRIAL_KEYS)
         refits, *_ = _fit_groups(
             model, action_model, space, synthetic, quiet, method, seed, device, progress,
-            stages, f"calibration{k + 1}",
+            stages, f"calibration{k + 1}at{last}",
         )  # fmt: skip
         return refits
 

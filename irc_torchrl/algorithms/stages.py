@@ -41,6 +41,8 @@ __all__ = ["AFTER_FITS", "Stages", "fit_settings", "format_resumed", "stage_key"
 AFTER_FITS = ("particles", "calibrate", "calibration_tail")
 #: the address in an object's default repr
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+#: how deep a task model's attributes are read into for the key
+_DEPTH = 6
 
 
 def fit_settings(config: Any) -> dict[str, Any]:
@@ -81,11 +83,38 @@ def _digest_model(digest: Any, model: TaskModel) -> None:
         digest.update(Path(inspect.getfile(task)).read_bytes())
     except (OSError, TypeError):
         pass
-    for name, value in sorted(vars(model).items()):
-        if isinstance(value, torch.Tensor):
-            _digest_tensor(digest, name, value)
-        else:  # an object's default repr names its address, which no other process shares
-            digest.update(f"{name}={_ADDRESS.sub('', repr(value))}".encode())
+    _digest_value(digest, "model", model, set())
+
+
+def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int = 0) -> None:
+    """Feed ``value`` to ``digest`` in full: tensors by their bytes and containers and plain
+    objects (a θ space, an action spec) by their contents, wherever they sit, so that no repr
+    rounds a number away, hides a field or orders a set by the process's hash seed."""
+    if isinstance(value, torch.Tensor):
+        _digest_tensor(digest, name, value)
+        return
+    plain = value is None or isinstance(value, (bool, int, float, complex, str, bytes))
+    code = inspect.isroutine(value) or inspect.isclass(value) or inspect.ismodule(value)
+    inner = vars(value) if hasattr(value, "__dict__") and not code else None
+    if plain or depth > _DEPTH or id(value) in seen:
+        items = None
+    elif isinstance(value, Mapping):
+        items = sorted(((str(k), v) for k, v in value.items()), key=lambda kv: kv[0])
+    elif isinstance(value, (list, tuple)):
+        items = [(str(i), v) for i, v in enumerate(value)]
+    elif isinstance(value, (set, frozenset)):
+        items = [(str(i), v) for i, v in enumerate(sorted(value, key=repr))]
+    elif inner is not None:
+        items = sorted(inner.items())
+    else:
+        items = None
+    digest.update(f"{name}:{type(value).__qualname__}".encode())
+    if items is None:  # an object's default repr names its address, no other process's
+        digest.update(_ADDRESS.sub("", repr(value)).encode())
+        return
+    seen.add(id(value))
+    for key, item in items:
+        _digest_value(digest, f"{name}.{key}", item, seen, depth + 1)
 
 
 def _digest_data(digest: Any, data: Iterable[TensorDictBase]) -> None:
