@@ -60,9 +60,9 @@ def _run_recovery(
             "(a file), got the packaged firefly2d"
         )
     _check_sendable(spec, "fit.workers", config.fit.workers)
-    resume = getattr(args, "resume", False)  # `irc demo` runs whole
+    resume = getattr(args, "resume", None)  # `irc demo` runs whole, in minutes: keeps none
     summary = run_recovery(
-        config, args.out, show_progress=not args.quiet, model=model, resume=resume
+        config, args.out, not args.quiet, model, bool(resume), keep=resume is not None
     )
     print(format_recovery(summary))
     drawn = any(Path(args.out).glob("beliefs_overhead_*.png"))  # for a position in the plane
@@ -264,14 +264,15 @@ def _add_common(parser: argparse.ArgumentParser, overrides_help: str) -> None:
 
 
 def _add_resume(parser: argparse.ArgumentParser, same: str) -> None:
-    """``--resume``: read the fits an earlier run into ``--out`` finished (``--out/stages``)."""
+    """``--resume``: read the fits and checks an earlier run into ``--out`` finished
+    (``--out/stages``)."""
     parser.add_argument(
         "--resume",
         action="store_true",
-        help=f"read the fits an earlier run into --out with the same {same} finished (kept in "
-        "--out/stages as each ends) instead of fitting them again: an interrupted run goes on "
-        "where it stopped, with the same numbers, and a larger calibrate reuses the datasets "
-        "already refitted",
+        help=f"read the fits and particle checks an earlier run into --out with the same {same} "
+        "finished (kept in --out/stages as each ends) instead of running them again: an "
+        "interrupted run goes on where it stopped, with the same numbers, and a larger "
+        "calibrate reuses the datasets already refitted",
     )
 
 

@@ -46,6 +46,10 @@ def test_each_option_reaches_the_run_it_sets(monkeypatch, tmp_path):
     argv = ["recover", "--seed", "8", "--device", "cpu:0", "--checkpoint", "a.pt", "--out", out]
     (config, _), _ = _handed(monkeypatch, recover2d, "run_recovery", argv)
     assert (config.seed, config.device, config.checkpoint) == (8, "cpu:0", "a.pt")
+    args, kwargs = _handed(monkeypatch, recover2d, "run_recovery", [*argv, "--resume"])
+    assert (args[4], kwargs["keep"]) == (True, True)  # the fits kept, and read
+    args, kwargs = _handed(monkeypatch, recover2d, "run_recovery", ["demo", "--task", "firefly2d"])
+    assert (args[4], kwargs["keep"]) == (False, False)  # minutes long: no stages to resume
     argv = ["train", "--seed", "9", "--device", "cpu:0", "--out", out]
     (config,), kwargs = _handed(monkeypatch, ensemble, "train_ensemble", argv)
     assert (kwargs["seed"], config.device, kwargs["out"]) == (9, "cpu:0", out)

@@ -5,21 +5,24 @@ one."""
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
 from irc_torchrl.algorithms import recordings, recover2d
+from irc_torchrl.algorithms import stages as stages_module
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recovery_stages, run_recovery
 from irc_torchrl.algorithms.stages import Stages, format_resumed, stage_key
-from irc_torchrl.checkpoint import resolve_checkpoint
+from irc_torchrl.checkpoint import read_weights, resolve_checkpoint
 from irc_torchrl.cli import main
 from irc_torchrl.config import FitConfig, RecordingFitConfig
 from irc_torchrl.envs.firefly2d import Firefly2DModel
@@ -98,6 +101,26 @@ def test_a_stage_is_read_back_only_by_a_resuming_run_of_its_key(tmp_path):
     nowhere = Stages(None, "k1", resume=True)
     nowhere.fit("fit_map", work(5))
     assert calls[-1] == 5 and nowhere.reused == []
+
+
+def test_a_check_is_kept_and_read_back_as_tensors_by_name(tmp_path):
+    """A check's tensors come back bit for bit with its seconds; a stage holding anything else
+    (a fit's, under the same name) is run again, not misread."""
+    calls = []
+
+    def work() -> dict[str, torch.Tensor]:
+        calls.append(1)
+        return {"gap": torch.randn(3, dtype=torch.float64), "ess": torch.arange(3.0)}
+
+    first, seconds = Stages(tmp_path, "k").check("particles20_at_theta_hat_map", work)
+    again = Stages(tmp_path, "k", resume=True)
+    read, read_seconds = again.check("particles20_at_theta_hat_map", work)
+    assert len(calls) == 1 and read_seconds == seconds and read.keys() == first.keys()
+    assert all(torch.equal(read[k], first[k]) and read[k].dtype == first[k].dtype for k in read)
+    Stages(tmp_path, "k").fit("fit_map", lambda: _result(0))
+    misnamed = Stages(tmp_path, "k", resume=True)
+    misnamed.check("fit_map", work)
+    assert len(calls) == 2 and misnamed.reused == []
 
 
 def test_pruning_keeps_the_stages_of_this_key_only(tmp_path):
@@ -237,6 +260,64 @@ def test_what_a_task_holds_keys_its_stages_and_object_addresses_do_not():
     )
     other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert other.stdout.strip() == stage_key({}, checkpoint, tagged)  # another hash seed
+
+
+class _Unprintable:
+    """An object without attributes whose repr raises."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        raise RuntimeError("no repr")
+
+
+def test_a_tasks_numpy_arrays_key_its_stages_in_full_and_a_raising_repr_does_not_stop_it():
+    """An array longer than NumPy's repr shows (1000 elements) keys by every element, one of
+    objects by its contents; an object whose repr raises is keyed by its type."""
+    checkpoint = resolve_checkpoint("firefly2d")
+    keys = []
+    for table in (np.zeros(2000), np.zeros(2000), np.eye(1, 2000, 1000).ravel()):
+        model = Firefly2DModel()
+        model.table = table
+        keys.append(stage_key({}, checkpoint, model))
+    boxed = []
+    for item in ("a", "a", "b"):
+        model = Firefly2DModel()
+        model.boxes = np.array([item, None], dtype=object)
+        boxed.append(stage_key({}, checkpoint, model))
+    assert keys[0] == keys[1] != keys[2] and boxed[0] == boxed[1] != boxed[2]
+    model = Firefly2DModel()
+    model.odd = _Unprintable()
+    assert stage_key({}, checkpoint, model) not in {*keys, *boxed}
+
+
+def test_a_tasks_key_reads_the_user_modules_its_class_runs(tmp_path, monkeypatch):
+    """The source of a task's own file, of a base class's file and of a helper module they
+    import key its stages (an edit of any one keys others); installed packages and this
+    library do not enter as files."""
+    (tmp_path / "shapes.py").write_text("def radius():\n    return 0.3\n")
+    (tmp_path / "base.py").write_text(
+        "from irc_torchrl.envs.firefly2d import Firefly2DModel\n"
+        "class Base(Firefly2DModel):\n    pass\n"
+    )
+    (tmp_path / "task.py").write_text(
+        "import numpy\nfrom shapes import radius\nfrom base import Base\n"
+        "class Task(Base):\n    pass\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("shapes", "base", "task"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    task = importlib.import_module("task").Task
+    assert stages_module._user_sources(Firefly2DModel) == []
+    assert [p.name for p in stages_module._user_sources(task)] == ["base.py", "shapes.py",
+                                                                   "task.py"]  # fmt: skip
+    checkpoint = resolve_checkpoint("firefly2d")
+    keys = [stage_key({}, checkpoint, task())]
+    for name in ("shapes.py", "base.py", "task.py"):
+        path = tmp_path / name
+        path.write_text(path.read_text() + "# edited\n")
+        keys.append(stage_key({}, checkpoint, task()))
+    assert len(set(keys)) == 4
 
 
 def test_a_resuming_run_says_what_it_read(tmp_path):
@@ -381,3 +462,57 @@ def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
     summary, reference = (json.loads((tmp_path / d / "summary.json").read_text()) for d in
                           ("run", "whole"))  # fmt: skip
     assert _strip(summary) == _strip(reference)
+
+
+def _stop_at_call(monkeypatch, module, name: str, n: int) -> list[int]:
+    """Count the calls of ``module.name`` from now on, stopping the run at the ``n``-th."""
+    work, calls = getattr(module, name), []
+
+    def stop(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == n:
+            raise Interrupted
+        return work(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, stop)
+    return calls
+
+
+def test_a_recovery_stopped_in_its_particle_checks_resumes_with_those_done(tmp_path, monkeypatch):
+    """Killed in its third particle check (marginal's at θ̂), a recovery resumed reads both
+    fits and map's two checks (with their times) and runs only marginal's, to the numbers of
+    a run never stopped."""
+    config = Recovery2DConfig(**{**TINY, "calibrate": 0, "particles": 16})
+    whole = run_recovery(config, tmp_path / "whole", show_progress=False)
+    with monkeypatch.context() as patch:
+        _stop_at_call(patch, recover2d, "particle_check", 3)
+        with pytest.raises(Interrupted):
+            run_recovery(config, tmp_path / "run", show_progress=False)
+    calls = _stop_at_call(monkeypatch, recover2d, "particle_check", 0)
+    resumed = run_recovery(config, tmp_path / "run", show_progress=False, resume=True)
+    assert len(calls) == 2 and resumed["resumed"] == [
+        "fit_map", "fit_marginal", "particles16_at_theta_hat_map", "particles16_at_theta_true_map"
+    ]  # fmt: skip
+    assert _strip(resumed) == _strip(whole)
+    folder = tmp_path / "run" / "stages"
+    kept = [folder / f"particles16_{w}_map.pt" for w in ("at_theta_hat", "at_theta_true")]
+    seconds = sum(read_weights(path)["seconds"] for path in kept)  # the earlier run's time
+    assert resumed["timings"]["particle_check_map_s"] == seconds
+
+
+def test_a_fit_of_recordings_resumed_reads_its_particle_checks(recorded, tmp_path, monkeypatch):
+    """Rerun with ``--resume``, a finished fit with particle checks reads every fit and check;
+    with another particle count it runs only the checks."""
+    config = RecordingFitConfig(n_screen=2, n_starts=1, max_iter=5, particles=16, threads=1)
+    files = [str(p) for p in recorded]
+    whole = recordings.fit_recordings(files, tmp_path, config, progress=False)
+    fits = _count_fits(monkeypatch, recordings)
+    checks = _stop_at_call(monkeypatch, recordings, "particle_check", 0)
+    again = recordings.fit_recordings(files, tmp_path, config, progress=False, resume=True)
+    assert fits == [] and checks == [] and again["resumed"] == [
+        "fit_8trials_map", "fit_8trials_marginal", "particles16_8trials_marginal"
+    ]  # fmt: skip
+    assert _strip(again) == _strip(whole)
+    more = dataclasses.replace(config, particles=24)
+    recordings.fit_recordings(files, tmp_path, more, progress=False, resume=True)
+    assert fits == [] and len(checks) == 1

@@ -453,7 +453,8 @@ def _fit_groups(
     dict[str, FitResult], list[TensorDict], dict[str, float], dict[str, list], dict[str, list]
 ]:
     """Fit every recording, batching those with equal trial counts; per method and per file.
-    Each batch's fit is the stage ``{stage}_{n_trials}trials_{method}``.
+    Each batch's fit is the stage ``{stage}_{n_trials}trials_{method}``, its particle check
+    ``particles{n}_{n_trials}trials_{method}``.
 
     Returns the fit per method (agents in the order of ``recordings``), each recording's
     beliefs under the primary method's θ̂ (``[n_trials, T]``), the time of each method,
@@ -493,14 +494,16 @@ def _fit_groups(
                     beliefs[i] = recovered[j, :, : recordings[i].shape[1]]
             timings[f"fit_{name}_s"] += time.perf_counter() - start
             if config.particles and (method == "both" or name == methods[-1]):  # reported
-                start = time.perf_counter()
-                check = particle_check(
-                    loss, held, result.theta_hat, result.nuisance, config.particles, seed
-                )
+                work = partial(
+                    particle_check, loss, held, result.theta_hat, result.nuisance,
+                    config.particles, seed,
+                )  # fmt: skip
+                particles = f"particles{config.particles}_{held.shape[1]}trials_{name}"
+                check, check_s = stages.check(particles, work, device)
                 for j, i in enumerate(members):
                     checks[name][i] = {k: float(v[j]) for k, v in check.items()}
                 key = f"particle_check_{name}_s"
-                timings[key] = timings.get(key, 0.0) + time.perf_counter() - start
+                timings[key] = timings.get(key, 0.0) + check_s
     fits = {}
     for name, pieces in parts.items():
         order = [i for members, _ in pieces for i in members]

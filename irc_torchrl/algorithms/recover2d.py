@@ -396,11 +396,9 @@ def recover_firefly2d(
         }
         timings[f"fit_{method}_s"] = fit_s
         if config.particles:
-            begin = time.perf_counter()
-            entry["particle_check"] = _particle_check(
-                loss, held, result, theta_true, config, scored["agents"]
+            entry["particle_check"], timings[f"particle_check_{method}_s"] = _particle_check(
+                loss, held, result, theta_true, config, scored["agents"], stages
             )
-            timings[f"particle_check_{method}_s"] = time.perf_counter() - begin
     if config.calibrate:
         begin = time.perf_counter()
         last = fitted[config.method_list[-1]].result
@@ -531,16 +529,26 @@ def _particle_check(
     theta_true: torch.Tensor,
     config: Recovery2DConfig,
     agents: list[dict],
-) -> dict:
+    stages: Stages,
+) -> tuple[dict, float]:
     """:func:`particle_check` at θ̂ and at θ* (θ̂'s nuisance) into each agent's entry, and
-    its medians; ``more_likely_at_theta_true`` counts the agents whose θ̂ the particle filter
-    finds less likely than θ* (which no exact maximum of the likelihood can be)."""
-    checks = {
-        where: particle_check(
-            loss, held, theta, result.nuisance, config.particles, seed=config.seed + 3
+    its medians with the seconds both took; ``more_likely_at_theta_true`` counts the agents
+    whose θ̂ the particle filter finds less likely than θ* (which no exact maximum of the
+    likelihood can be). Each is the stage ``particles{n}_{where}_{method}``."""
+    checks, seconds = {}, 0.0
+    for where, theta in (("at_theta_hat", result.theta_hat), ("at_theta_true", theta_true)):
+        work = partial(
+            particle_check,
+            loss,
+            held,
+            theta,
+            result.nuisance,
+            config.particles,
+            seed=config.seed + 3,
         )
-        for where, theta in (("at_theta_hat", result.theta_hat), ("at_theta_true", theta_true))
-    }
+        name = f"particles{config.particles}_{where}_{loss.method}"
+        checks[where], took = stages.check(name, work, held.device)
+        seconds += took
     ratio = (
         checks["at_theta_hat"]["particle_log_likelihood"]
         - checks["at_theta_true"]["particle_log_likelihood"]
@@ -550,7 +558,7 @@ def _particle_check(
             where: {k: float(v[i]) for k, v in check.items()} for where, check in checks.items()
         }
         agent["particle_check"]["log_likelihood_ratio"] = float(ratio[i])
-    return {
+    entry = {
         "particles": config.particles,
         **{
             f"median_gap_{where}": statistics.median(check["approximation_gap"].tolist())
@@ -559,6 +567,7 @@ def _particle_check(
         "median_log_likelihood_ratio": statistics.median(ratio.tolist()),
         "more_likely_at_theta_true": int((ratio < 0).sum()),
     }
+    return entry, seconds
 
 
 #: ``irc demo --task firefly2d``: the recovery experiment made small enough for minutes (3
@@ -584,15 +593,17 @@ def run_recovery(
     show_progress: bool = True,
     model: TaskModel | None = None,
     resume: bool = False,
+    keep: bool = True,
 ) -> dict:
     """Run :func:`recover_firefly2d` (on ``model``'s task where given) into ``out``:
     ``config.yaml``, ``summary.json``, ``trials/`` (the simulated data with truth and
-    recovered beliefs) and figures. Each fit is kept in ``out/stages`` as it finishes; with
-    ``resume`` those an earlier, interrupted run of the same settings finished are read
-    instead of fitted again (the same numbers; ``summary["resumed"]`` names them)."""
+    recovered beliefs) and figures. With ``keep``, each fit and particle check is kept in
+    ``out/stages`` as it finishes; with ``resume`` those an earlier, interrupted run of the
+    same settings finished are read instead of run again (the same numbers;
+    ``summary["resumed"]`` names them)."""
     config.validate(model)
     out = Path(out)
-    stages = recovery_stages(config, out, model, resume)
+    stages = recovery_stages(config, out, model, resume) if keep else Stages()
     with torch_settings(config.threads, True):
         bars: dict[str, tqdm] = {}
 

@@ -1,12 +1,13 @@
 """The finished fits of a long run, kept in its output folder so that a run stopped part-way
 (a killed job, a cluster's time limit) resumes where it stopped, with the same numbers.
 
-Each fit of a run (one estimator on the recorded trials, or on one calibration dataset) is a
-stage, saved as ``stages/NAME.pt`` once finished, tensors and plain values only (read back
-with ``torch.load(weights_only=True)``), beside a key: a digest of everything the fit depends
-on (the run's settings, the policy's checkpoint, the task, the trials, the library's code and
-the versions of torch, torchrl and tensordict). A run that resumes reads a stage instead of
-fitting only where the keys match; any other stage is fitted again.
+Each fit of a run (one estimator on the recorded trials, or on one calibration dataset) and
+each particle check of a fit is a stage, saved as ``stages/NAME.pt`` once finished, tensors
+and plain values only (read back with ``torch.load(weights_only=True)``), beside a key: a
+digest of everything the stage depends on (the run's settings, the policy's checkpoint, the
+task, the trials, the library's code and the versions of torch, torchrl and tensordict). A run
+that resumes reads a stage instead of running it only where the keys match; any other stage
+runs again.
 """
 
 from __future__ import annotations
@@ -16,11 +17,15 @@ import hashlib
 import inspect
 import json
 import re
+import site
+import sys
+import sysconfig
 import time
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tensordict
 import torch
 import torchrl
@@ -75,23 +80,56 @@ def stage_key(
 
 
 def _digest_model(digest: Any, model: TaskModel) -> None:
-    """Feed a task model to ``digest``: its class, the class's source where it has one (a class
-    defined in a notebook has none), and its attributes (what it was built with)."""
+    """Feed a task model to ``digest``: its class, the source of its class and of the user
+    modules that class reads (a class defined in a notebook has none), and its attributes
+    (what it was built with)."""
     task = type(model)
     digest.update(f"{task.__module__}.{task.__qualname__}".encode())
-    try:
-        digest.update(Path(inspect.getfile(task)).read_bytes())
-    except (OSError, TypeError):
-        pass
+    for path in _user_sources(task):
+        digest.update(path.as_posix().encode())
+        digest.update(path.read_bytes())
     _digest_value(digest, "model", model, set())
 
 
+def _user_sources(task: type) -> list[Path]:
+    """The files of the user's own code a task class runs: the modules of its class and base
+    classes and, transitively, the modules theirs import (their names, functions and classes),
+    leaving out the standard library, installed packages and this library (keyed by
+    :func:`_code_digest`)."""
+    paths = sysconfig.get_paths()
+    shared = [paths[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")]
+    shared += [*site.getsitepackages(), site.getusersitepackages()]
+    shared = [Path(p).resolve() for p in shared] + [Path(irc_torchrl.__file__).parent.resolve()]
+    found: dict[str, Path] = {}
+    pending = [sys.modules.get(cls.__module__) for cls in task.__mro__]
+    while pending:
+        module = pending.pop()
+        file = getattr(module, "__file__", None)
+        if module is None or file is None or module.__name__ in found:
+            continue
+        path = Path(file).resolve()
+        if any(path.is_relative_to(root) for root in shared) or not path.is_file():
+            continue
+        found[module.__name__] = path
+        for value in vars(module).values():
+            if inspect.ismodule(value):
+                pending.append(value)
+            elif inspect.isclass(value) or inspect.isroutine(value):
+                pending.append(sys.modules.get(getattr(value, "__module__", None) or ""))
+    return sorted(found.values())
+
+
 def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int = 0) -> None:
-    """Feed ``value`` to ``digest`` in full: tensors by their bytes and containers and plain
-    objects (a θ space, an action spec) by their contents, wherever they sit, so that no repr
-    rounds a number away, hides a field or orders a set by the process's hash seed."""
+    """Feed ``value`` to ``digest`` in full: tensors and NumPy arrays by their bytes and
+    containers and plain objects (a θ space, an action spec) by their contents, wherever they
+    sit, so that no repr rounds a number away, hides a field or orders a set by the process's
+    hash seed."""
     if isinstance(value, torch.Tensor):
         _digest_tensor(digest, name, value)
+        return
+    if isinstance(value, np.ndarray) and value.dtype != object:
+        digest.update(f"{name}{value.dtype.str}{list(value.shape)}".encode())
+        digest.update(np.ascontiguousarray(value).tobytes())
         return
     plain = value is None or isinstance(value, (bool, int, float, complex, str, bytes))
     code = inspect.isroutine(value) or inspect.isclass(value) or inspect.ismodule(value)
@@ -102,6 +140,8 @@ def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int
         items = sorted(((str(k), v) for k, v in value.items()), key=lambda kv: kv[0])
     elif isinstance(value, (list, tuple)):
         items = [(str(i), v) for i, v in enumerate(value)]
+    elif isinstance(value, np.ndarray):  # of objects
+        items = [(str(list(value.shape)), value.tolist())]
     elif isinstance(value, (set, frozenset)):
         items = [(str(i), v) for i, v in enumerate(sorted(value, key=repr))]
     elif inner is not None:
@@ -110,11 +150,19 @@ def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int
         items = None
     digest.update(f"{name}:{type(value).__qualname__}".encode())
     if items is None:  # an object's default repr names its address, no other process's
-        digest.update(_ADDRESS.sub("", repr(value)).encode())
+        digest.update(_ADDRESS.sub("", _repr(value)).encode())
         return
     seen.add(id(value))
     for key, item in items:
         _digest_value(digest, f"{name}.{key}", item, seen, depth + 1)
+
+
+def _repr(value: Any) -> str:
+    """``repr(value)``, or its type's name where that repr raises (the key then reads less)."""
+    try:
+        return repr(value)
+    except Exception:  # a user's object may raise anything
+        return f"<{type(value).__qualname__}>"
 
 
 def _digest_data(digest: Any, data: Iterable[TensorDictBase]) -> None:
@@ -146,7 +194,7 @@ class Stages:
     """The stages of one run in ``folder`` (``None``: none kept), under the run's ``key``.
 
     With ``resume``, a stage an earlier run of the same key finished is read instead of
-    fitted; ``reused`` names those, in order.
+    fitted (or checked); ``reused`` names those, in order.
     """
 
     def __init__(
@@ -169,15 +217,33 @@ class Stages:
     ) -> tuple[FitResult, float]:
         """Stage ``name``'s fit and the seconds it took (an earlier run's, where read), on
         ``device``: ``work()``'s, saved once finished, or one kept by an earlier run."""
-        kept = self._read(name) if self.resume else None
+        kept = self._read(name, FitResult.from_state_dict) if self.resume else None
         if kept is not None:
-            self.reused.append(name)
             return kept[0].to(device), kept[1]
+        return self._run(name, work, lambda result: result.cpu().state_dict())
+
+    def check(
+        self,
+        name: str,
+        work: Callable[[], dict[str, torch.Tensor]],
+        device: torch.device | str = "cpu",
+    ) -> tuple[dict[str, torch.Tensor], float]:
+        """Stage ``name``'s check of a fit (tensors by name, as :func:`particle_check` gives
+        them) and its seconds, kept and read as :meth:`fit` keeps and reads a fit."""
+        kept = self._read(name, _tensors) if self.resume else None
+        if kept is not None:
+            return {key: value.to(device) for key, value in kept[0].items()}, kept[1]
+        return self._run(name, work, lambda result: {k: v.cpu() for k, v in result.items()})
+
+    def _run(
+        self, name: str, work: Callable[[], Any], state: Callable[[Any], Any]
+    ) -> tuple[Any, float]:
+        """``work()``'s result and seconds, its ``state`` saved as stage ``name``."""
         begin = time.perf_counter()
         result = work()
         seconds = time.perf_counter() - begin
         if self.folder is not None:
-            stage = {"key": self.key, "seconds": seconds, "result": result.cpu().state_dict()}
+            stage = {"key": self.key, "seconds": seconds, "result": state(result)}
             with atomic_path(self.folder / f"{name}.pt") as tmp:
                 torch.save(stage, tmp)
         return result, seconds
@@ -198,17 +264,20 @@ class Stages:
         if self.resume:
             summary["resumed"] = self.reused
 
-    def _read(self, name: str) -> tuple[FitResult, float] | None:
-        """Stage ``name`` of this key, or ``None`` where none is kept (or it is unreadable)."""
+    def _read(self, name: str, restore: Callable[[Any], Any]) -> tuple[Any, float] | None:
+        """Stage ``name`` of this key, ``restore``d, with its seconds, or ``None`` where none is
+        kept (or it is unreadable); a stage read is named in :attr:`reused`."""
         if self.folder is None:
             return None
         stage = self._load(self.folder / f"{name}.pt")
         if stage is None:
             return None
         try:
-            return FitResult.from_state_dict(stage["result"]), float(stage["seconds"])
+            kept = restore(stage["result"]), float(stage["seconds"])
         except (KeyError, TypeError, ValueError):
             return None
+        self.reused.append(name)
+        return kept
 
     def _load(self, path: Path) -> dict | None:
         """The stage file ``path`` if it holds this key, else ``None``."""
@@ -219,6 +288,15 @@ class Stages:
         if not isinstance(stage, dict) or stage.get("key") != self.key:
             return None
         return stage
+
+
+def _tensors(state: Any) -> dict[str, torch.Tensor]:
+    """A check's kept ``state``, which must be tensors by name."""
+    if not isinstance(state, Mapping) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()
+    ):
+        raise TypeError("a check's stage holds tensors by name")
+    return dict(state)
 
 
 def format_resumed(summary: Mapping[str, Any]) -> list[str]:
