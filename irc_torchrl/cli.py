@@ -6,10 +6,12 @@ import argparse
 import json
 import re
 import sys
+import warnings
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from irc_torchrl.envs.model import TaskModel
@@ -54,11 +56,7 @@ def _run_recovery(
     spec = getattr(args, "model", None)  # `irc demo` recovers the firefly's agents only
     model = _task_model(spec)
     config = load_recovery2d_config(config_path, overrides, model)
-    if model is not None and config.checkpoint == "firefly2d" != model.name:
-        raise ValueError(
-            f"--checkpoint: expected the policy `irc train --model` learned for {model.name!r} "
-            "(a file), got the packaged firefly2d"
-        )
+    _check_policy(config.checkpoint, model)
     _check_sendable(spec, "fit.workers", config.fit.workers)
     resume = getattr(args, "resume", None)  # `irc demo` runs whole, in minutes: keeps none
     summary = run_recovery(
@@ -67,11 +65,33 @@ def _run_recovery(
     print(format_recovery(summary))
     drawn = any(Path(args.out).glob("beliefs_overhead_*.png"))  # for a position in the plane
     overhead = "beliefs_overhead_*.png, " if drawn else ""
+    stages = "stages/ (the fits) and " if resume is not None else ""
     print(
-        f"wrote {args.out}/: summary.json, config.yaml, trials/, stages/ (the fits) and "
-        f"figures (recovery_*.png, {overhead}beliefs_time_*.png)"
+        f"wrote {args.out}/: summary.json, config.yaml, trials/, {stages}figures "
+        f"(recovery_*.png, {overhead}beliefs_time_*.png)"
     )
     return 0
+
+
+def _check_policy(checkpoint: str, model: TaskModel | None) -> None:
+    """Refuse a policy learned for another task than ``--model``'s (the 2D firefly's without
+    it) before any work, naming the option that mends it."""
+    from irc_torchrl.checkpoint import load_checkpoint
+
+    task = "firefly2d" if model is None else model.name
+    found = load_checkpoint(checkpoint)["task"]
+    if found == task:
+        return
+    if model is None:
+        raise ValueError(
+            f"--checkpoint: {checkpoint} holds a policy for {found!r}; expected --model naming "
+            "that task (FILE.py:Class or module:Class), or a policy for 'firefly2d'"
+        )
+    given = f"{checkpoint}, a policy for {found!r}" if Path(checkpoint).is_file() else None
+    raise ValueError(
+        f"--checkpoint: expected the policy `irc train --model` learned for {task!r} (a file), "
+        f"got {given or f'the packaged {checkpoint}'}"
+    )
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -134,9 +154,10 @@ def _task_model(spec: str | None) -> TaskModel | None:
         if task is None:
             found = "nothing by that name"
         elif isinstance(task, type):
-            found = f"a {task.__mro__[1].__name__} subclass"
+            bases = ", ".join(base.__name__ for base in task.__bases__)
+            found = f"class {task.__name__} (bases: {bases})"
         else:
-            found = f"a {type(task).__name__}"
+            found = f"a value of type {type(task).__name__}"
         raise ValueError(
             f"--model: expected {name} in {source} to be a TaskModel subclass, got {found}"
         )
@@ -182,6 +203,8 @@ def _simulate(args: argparse.Namespace) -> int:
     from irc_torchrl.config import load_simulate_config
 
     config = load_simulate_config(args.overrides)
+    model = _task_model(args.model)
+    _check_policy(args.checkpoint, model)
     summary = simulate_recordings(
         config,
         args.out,
@@ -191,7 +214,7 @@ def _simulate(args: argparse.Namespace) -> int:
         args.device,
         progress=not args.quiet,
         task=args.task,
-        model=_task_model(args.model),
+        model=model,
     )
     for agent in summary["agents"]:
         theta = ", ".join(f"{k}={v:.3g}" for k, v in agent["theta_true"].items())
@@ -209,6 +232,8 @@ def _fit(args: argparse.Namespace) -> int:
     # an empty --free names nothing to fit (refused), not every parameter
     free = None if args.free is None else [n.strip() for n in args.free.split(",") if n.strip()]
     _check_sendable(args.model, "workers", config.workers)
+    model = _task_model(args.model)
+    _check_policy(args.checkpoint, model)
     summary = fit_recordings(
         files,
         args.out,
@@ -219,7 +244,7 @@ def _fit(args: argparse.Namespace) -> int:
         seed=args.seed,
         device=args.device,
         progress=not args.quiet,
-        model=_task_model(args.model),
+        model=model,
         resume=args.resume,
     )
     print(format_fit(summary))
@@ -311,9 +336,11 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     )
     _add_common(
         simulate,
-        "settings: n_agents, n_trials, motor_noise, lapse (how often an action dimension is "
-        "unrelated to the belief; default 0), threads, theta.<name> (the agents' θ), "
-        "task_theta.<name> (the world's θ), e.g. n_trials=50 theta.g_v=1.3",
+        "settings: n_agents (default 1), n_trials (default 100), motor_noise (default 0.1), "
+        "lapse (how often an action dimension is unrelated to the belief; default 0.0), "
+        "threads (default 1), theta.<name> (the agents' θ, what they believe; drawn from the "
+        "prior where not given), task_theta.<name> (the world's θ, at its default where not "
+        "given; the recordings' theta.* columns), e.g. n_trials=50 theta.g_v=1.3",
     )
     simulate.set_defaults(run=_simulate)
     fit = commands.add_parser(
@@ -348,10 +375,11 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     )
     _add_common(
         fit,
-        "settings: n_screen, n_starts, max_iter, motor_noise (initial), lapse (the action "
-        "model's lapse rate: where its fit starts, default 0.01), fit_lapse (true; false "
-        "holds lapse fixed, 0: none), threads, workers (processes the recordings' fits "
-        "are shared among, CPU), "
+        "settings: n_screen (default 16), n_starts (default 2), max_iter (default 80), "
+        "motor_noise (where its fit starts, default 0.1), lapse (the action model's lapse "
+        "rate: where its fit starts, default 0.01), fit_lapse (default true; false holds lapse "
+        "fixed, 0: none), threads (default 1), workers (processes the recordings' fits are "
+        "shared among, CPU; default 1), "
         "curvature (bfgs, fisher or hessian: how the iterations measure curvature), "
         "covariance (hessian, or sandwich: H⁻¹ Σ sᵢsᵢᵀ H⁻¹ over the trials' scores), "
         "intervals (wald, or profile: where the profile likelihood falls 1.92 below its top), "
@@ -562,16 +590,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     takes_settings = hasattr(args, "overrides")
     stray = [item for item in extra if not (takes_settings and KEY_VALUE.match(item))]
     if stray:
-        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+        form = f" (irc {args.command} takes settings as key=value)" if takes_settings else ""
+        parser.error(f"unrecognized arguments: {' '.join(stray)}{form}")
     if extra:
         args.overrides = [*args.overrides, *extra]
-    try:
-        _check_arguments(args)
-        return args.run(args)
-    except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
-        message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        print(f"irc {args.command}: error: {message}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        warnings.formatwarning = partial(_format_warning, args.command)
+        try:
+            _check_arguments(args)
+            return args.run(args)
+        except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
+            message = error.args[0] if isinstance(error, KeyError) and error.args else error
+            print(f"irc {args.command}: error: {message}", file=sys.stderr)
+            return 2
+
+
+def _format_warning(command: str, message: Warning | str, *args: Any, **kwargs: Any) -> str:
+    """A warning of ``irc command`` as one line, as its errors are (not the Python source
+    line that raised it)."""
+    return f"irc {command}: warning: {message}\n"
 
 
 if __name__ == "__main__":

@@ -428,15 +428,20 @@ def report_run(folder: str | Path) -> list[Path]:
     if not isinstance(summary, dict):
         raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
     beliefs, figures = _archive(folder / "beliefs.npz"), _archive(folder / "figures.npz")
-    if summary.get("command") == "fit" and beliefs is None:
-        warnings.warn(
-            f"report: no beliefs.npz in {folder}: the belief figures are not drawn", stacklevel=2
-        )
+    recovered = summary.get("command") in ("recover", "demo") and summary.get("methods")
+    for lacking, name in (
+        (summary.get("command") == "fit" and beliefs is None, "beliefs.npz"),
+        (recovered and not (folder / "trials").is_dir(), "trials/"),
+    ):
+        if lacking:
+            warnings.warn(
+                f"report: no {name} in {folder}: the belief figures are not drawn", stacklevel=2
+            )
     trials = _recovered_trials(summary, folder / "trials")
     # every figure is drawn aside first, so a field found lacking half-way leaves none behind
     with tempfile.TemporaryDirectory(dir=folder, prefix=".report.") as scratch:
         try:
-            drawn = _report(summary, beliefs, figures, trials, folder, path, Path(scratch))
+            drawn = _report(summary, beliefs, figures, trials, folder, Path(scratch))
         except (KeyError, TypeError, AttributeError, IndexError) as error:
             raise ValueError(
                 f"report: {path} lacks or mangles field {error}; {_EXPECTED}"
@@ -446,6 +451,10 @@ def report_run(folder: str | Path) -> list[Path]:
                 f"report: {path} holds values that cannot be drawn ({first_line(error)}); "
                 f"{_EXPECTED}"
             ) from None
+        if not drawn:
+            raise ValueError(
+                f"report: {path} holds neither fitted agents nor a training history; {_EXPECTED}"
+            )
         for figure in drawn:
             os.replace(figure, folder / figure.name)
     return [folder / figure.name for figure in drawn]
@@ -495,7 +504,6 @@ def _report(
     figures: Mapping[str, np.ndarray] | None,
     trials: TensorDict | None,
     folder: Path,
-    path: Path,
     out: Path,
 ) -> list[Path]:
     """The figures of a run folder's ``summary`` (and of its ``beliefs.npz``, ``figures.npz``
@@ -522,10 +530,6 @@ def _report(
         written += belief_figures(trials, summary["methods"], out, **state_layout(summary))
     if written and summary.get("task") == "firefly2d":
         written += _q_figure(summary, folder, out)
-    if not written:
-        raise ValueError(
-            f"report: {path} holds neither fitted agents nor a training history; {_EXPECTED}"
-        )
     return written
 
 

@@ -417,16 +417,18 @@ def _same(a, b) -> bool:
 
 
 def test_resuming_a_finished_run_restores_every_entry_it_reads(tmp_path, trained):
-    """With nothing left to train, a resumed run checkpoints what it restored: networks and
-    their targets, optimisers, the annealed noise, the kept policy, counters and history; its
-    random stream goes on from the saved one (setting the run up draws from it)."""
+    """With nothing left to train (it warns), a resumed run checkpoints what it restored:
+    networks and their targets, optimisers, the annealed noise, the kept policy, counters and
+    history; its random stream goes on from the saved one (setting the run up draws from
+    it)."""
     _, out = trained
     before = torch.load(out / "checkpoint.pt", weights_only=True)
     seed99 = torch.Generator().manual_seed(99).get_state()
     other = _edited(trained, tmp_path, lambda p: p["rng"].update(torch=seed99))
     after = {}
     for name, path in (("same", out / "checkpoint.pt"), ("other", other)):
-        train_ensemble(tiny(), out=tmp_path / name, resume=path, progress=False)
+        with pytest.warns(UserWarning, match="trained 1280 frames, .* 1280: nothing left to train"):
+            train_ensemble(tiny(), out=tmp_path / name, resume=path, progress=False)
         after[name] = torch.load(tmp_path / name / "checkpoint.pt", weights_only=True)
     for entry in (*RESUME_ENTRIES, "actor"):
         if entry != "rng":

@@ -8,6 +8,8 @@ import dataclasses
 import json
 import math
 import re
+import subprocess
+import sys
 from argparse import Namespace
 
 import numpy as np
@@ -17,7 +19,9 @@ import torch
 from irc_torchrl import checks
 from irc_torchrl.algorithms import demo, ensemble, recordings, recover2d
 from irc_torchrl.algorithms.dp import optimal_values
+from irc_torchrl.checkpoint import resolve_checkpoint
 from irc_torchrl.cli import _check_arguments, _files_and_settings, build_parser, main
+from irc_torchrl.config import RecordingFitConfig, SimulateConfig
 from irc_torchrl.envs.firefly1d import Firefly1DModel
 
 
@@ -43,9 +47,12 @@ def test_each_option_reaches_the_run_it_sets(monkeypatch, tmp_path):
         monkeypatch, demo, "run_demo", ["demo", "--seed", "7", "--out", out]
     )
     assert (config.seed, str(where)) == (7, out)
-    argv = ["recover", "--seed", "8", "--device", "cpu:0", "--checkpoint", "a.pt", "--out", out]
-    (config, _), _ = _handed(monkeypatch, recover2d, "run_recovery", argv)
-    assert (config.seed, config.device, config.checkpoint) == (8, "cpu:0", "a.pt")
+    policy = tmp_path / "a.pt"
+    policy.write_bytes(resolve_checkpoint("firefly2d").read_bytes())
+    argv = ["recover", "--seed", "8", "--device", "cpu:0", "--checkpoint", str(policy)]
+    argv += ["--out", out]
+    (config, *_), _ = _handed(monkeypatch, recover2d, "run_recovery", argv)
+    assert (config.seed, config.device, config.checkpoint) == (8, "cpu:0", str(policy))
     args, kwargs = _handed(monkeypatch, recover2d, "run_recovery", [*argv, "--resume"])
     assert (args[4], kwargs["keep"]) == (True, True)  # the fits kept, and read
     args, kwargs = _handed(monkeypatch, recover2d, "run_recovery", ["demo", "--task", "firefly2d"])
@@ -68,6 +75,42 @@ def test_a_dotted_setting_after_the_options_is_a_setting_and_a_report_takes_none
         main(["report", str(tmp_path), "max_iter=3"])
     assert exit_.value.code == 2
     assert "unrecognized arguments: max_iter=3" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "command, config", [("simulate", SimulateConfig()), ("fit", RecordingFitConfig())]
+)
+def test_the_defaults_a_commands_help_names_are_its_configs(command, config):
+    parser = build_parser()
+    (commands,) = (a for a in parser._actions if a.dest == "command")
+    overrides = next(a for a in commands.choices[command]._actions if a.dest == "overrides")
+    named = re.findall(r"(\w+) \((?:[^()]*?[;:,] )?default ([\w.]+)\)", overrides.help)
+    assert len(named) >= 5
+    for key, default in named:
+        value = getattr(config, key)
+        assert str(value).lower() == default, key
+
+
+def test_a_commands_warnings_are_one_line_like_its_errors(tmp_path):
+    """Not Python's ``file:line: UserWarning`` with the source line that raised it."""
+    code = (
+        "import sys, warnings\n"
+        "from irc_torchrl import cli\n"
+        "def warn(args):\n"
+        "    warnings.warn('report: no trials/ in here')\n"
+        "    return 0\n"
+        "cli._report = warn\n"
+        f"sys.exit(cli.main(['report', {str(tmp_path)!r}]))\n"
+    )
+    ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert ran.stderr == "irc report: warning: report: no trials/ in here\n"
+
+
+def test_a_setting_without_its_equals_sign_is_refused_saying_the_form(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["fit", "a.csv", "--out", str(tmp_path), "max_iter", "1"])
+    err = capsys.readouterr().err
+    assert "unrecognized arguments: max_iter 1 (irc fit takes settings as key=value)" in err
 
 
 def test_a_recording_named_like_a_setting_is_a_recording(tmp_path, monkeypatch):

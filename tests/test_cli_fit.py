@@ -113,6 +113,10 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
         assert 0 < low < std < high
     table = format_fit(summary)
     assert "g_v" in table and "95% CI" in table and "true" in table and "sigma_w" not in table
+    at_bound = json.loads(json.dumps(summary))
+    at_bound["agents"][0]["ci_low"]["g_v"] = 3.4e-18  # a bound at 0, reached to rounding
+    row = next(x for x in format_fit(at_bound).splitlines() if x.strip().startswith("g_v"))
+    assert "[0, " in row and "e-18" not in row
     # the estimates' correlations over the free parameters: symmetric, ones on the diagonal
     correlation = agent["correlation"]
     assert list(correlation) == FREE and all(list(row) == FREE for row in correlation.values())
@@ -287,6 +291,10 @@ def test_report_draws_training_curves(tmp_path):
 def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 2
     assert "irc report: error: report: no summary.json in" in capsys.readouterr().err
+    (tmp_path / "summary.json").write_text('{"command": "simulate", "agents": []}')
+    assert main(["report", str(tmp_path)]) == 2  # nothing to draw, said once
+    err = capsys.readouterr().err
+    assert err.count("expected the summary.json of irc fit") == 1 and "holds neither" in err
 
 
 @pytest.mark.parametrize(
@@ -326,7 +334,8 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "components=0"], "components must be positive"),
         (["fit", "FILE", "workers=0"], "workers must be positive, got 0"),
         (["recover", "fit.workers=-2"], "fit.workers must be positive, got -2"),
-        (["recover", "n_trials=9"], "'sandwich' needs at least as many trials per agent as"),
+        (["recover", "n_trials=9"], "fit.covariance: 'sandwich' needs at least as many trials"),
+        (["recover", "n_trials=9"], "has 9; expected fit.covariance=hessian for so few trials"),
         (["fit", "FILE", "components=4"], "components: expected 1 or more than the belief's 5"),
         (["fit", "FILE", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),
         (["simulate", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),
@@ -354,6 +363,16 @@ def test_bad_settings_exit_2_with_a_clear_message(argv, message, simulated, tmp_
     err = capsys.readouterr().err
     assert err.startswith(f"irc {argv[0]}: error: ") and message in err
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_a_recording_too_short_for_the_sandwich_is_named_before_any_fit(tmp_path, capsys):
+    short = tmp_path / "short"
+    assert main(["simulate", "--out", str(short), "--quiet", "n_trials=4"]) == 0
+    argv = ["fit", str(short / "agent0.csv"), "--out", str(tmp_path / "out"), "--quiet"]
+    assert main([*argv, "covariance=sandwich"]) == 2
+    err = capsys.readouterr().err
+    assert f"); {short / 'agent0.csv'} has 4; expected covariance=hessian for so few" in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_path, capsys):

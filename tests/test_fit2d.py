@@ -5,6 +5,7 @@ Fixed seeds throughout; tolerances are stated where they are asserted.
 
 import itertools
 import math
+import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -161,6 +162,12 @@ def test_report_redraws_a_recovery_folders_belief_figures(recovery, tmp_path, ca
     assert main(["report", str(tmp_path)]) == 2
     assert "mean.memmap: 100 bytes; expected" in capsys.readouterr().err
     assert not list(tmp_path.glob("*.png"))
+    shutil.rmtree(tmp_path / "trials")  # without them, θ̂ against θ* alone, saying so
+    with pytest.warns(UserWarning, match="no trials/ in .*: the belief figures are not drawn"):
+        assert main(["report", str(tmp_path)]) == 0
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        "q_function.png", *(f"recovery_{m}.png" for m in summary["methods"])
+    ]
 
 
 def _recovered(methods: list[str]) -> TensorDict:
@@ -420,7 +427,7 @@ def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch
     with pytest.raises(
         ValueError,
         match=r"covariance: 'sandwich' needs at least as many trials per agent as fitted "
-        r"coordinates \(10: 8 of θ, 2 nuisance\); agent 0 has 3: use covariance='hessian'",
+        r"coordinates \(10: 8 of θ, 2 nuisance\); agent 0 has 3; expected covariance=hessian for",
     ):
         fit_theta(loss, held, covariance="sandwich")
     with pytest.raises(ValueError, match=r"starts: expected one θ per agent, \[1, 9\]"):

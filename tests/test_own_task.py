@@ -329,7 +329,11 @@ def test_irc_train_trains_and_resumes_a_task_named_on_the_command_line(tmp_path,
     [
         ("bad", [], "--model: expected FILE.py:Class or module:Class, got 'bad'"),
         ("nosuch.py:Task", [], "--model: no file at nosuch.py"),
-        (REACH[:-10] + "LQGController", [], "to be a TaskModel subclass, got a Module subclass"),
+        (
+            REACH[:-10] + "LQGController",
+            [],
+            r"to be a TaskModel subclass, got class LQGController \(bases: Module\)",
+        ),
         (REACH[:-10] + "Nope", [], "to be a TaskModel subclass, got nothing by that name"),
         (
             "irc_torchrl.envs.firefly1d:Firefly1DModel",
@@ -385,7 +389,7 @@ def test_irc_simulate_and_fit_take_a_task_named_on_the_command_line(own_task, tm
     # the packaged checkpoint is the firefly's, and a task from a file stays in this process
     argv = ["fit", *files, "--model", REACH, "--out", str(tmp_path / "none"), "--quiet"]
     assert main(argv) == 2
-    assert "task is 'firefly2d', expected 'reach_and_hold'" in capsys.readouterr().err
+    assert "learned for 'reach_and_hold' (a file), got the packaged" in capsys.readouterr().err
     assert main([*argv, "--checkpoint", str(out / "checkpoint.pt"), "workers=2"]) == 2
     assert "--model: a task from a file" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
@@ -555,6 +559,26 @@ def test_irc_recover_refuses_an_own_task_it_cannot_run_before_any_work(
     err = capsys.readouterr().err
     assert re.search(message, err), err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [["simulate"], ["fit", "a.csv"]])
+def test_a_policy_of_another_task_is_refused_naming_the_option_that_mends_it(
+    own_task, command, tmp_path, capsys
+):
+    """``--model`` with the packaged firefly policy, or a task's own policy without
+    ``--model``: one line saying which option to give, before any work."""
+    _, trained = own_task
+    out = tmp_path / "run"
+    for extra, message in (
+        (["--model", REACH], "--checkpoint: expected the policy `irc train --model` learned "
+         "for 'reach_and_hold' (a file), got the packaged firefly2d"),
+        (["--checkpoint", str(trained / "checkpoint.pt")], "holds a policy for 'reach_and_hold'; "
+         "expected --model naming that task (FILE.py:Class or module:Class)"),
+    ):  # fmt: skip
+        assert main([*command, *extra, "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"irc {command[0]}: error: ") and message in err, err
+        assert not out.exists()
 
 
 def test_an_own_tasks_recovery_config_without_its_model_is_refused_naming_the_option(

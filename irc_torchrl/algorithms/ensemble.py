@@ -778,6 +778,7 @@ def _train(
             resume, task=model.name, theta_space=model.theta_space, required=RESUME_ENTRIES
         )
         _check_networks(ckpt, d)
+        _check_budget(ckpt, d)
         _restore(loss, ckpt, "loss")
         _restore(opt_actor, ckpt, "optimiser_actor")
         _restore(opt_critic, ckpt, "optimiser_critic")
@@ -1102,6 +1103,19 @@ def _check_networks(ckpt: Mapping[str, Any], d: DDPGConfig) -> None:
                 f"resume: checkpoint {ckpt['path']} has ddpg.{name}={saved[name]!r}, the config "
                 f"{getattr(d, name)!r}; resume with the checkpoint's settings"
             )
+
+
+def _check_budget(ckpt: Mapping[str, Any], d: DDPGConfig) -> None:
+    """Warn where a checkpoint has already trained for the config's budget: the resumed run
+    trains nothing and only writes what it restored again."""
+    counters = ckpt["counters"]
+    trained = int(counters["frames"]) - int(counters.get("warmup_frames", 0))
+    if trained >= d.total_frames:
+        warnings.warn(
+            f"resume: {ckpt['path']} has trained {trained} frames, ddpg.total_frames is "
+            f"{d.total_frames}: nothing left to train (a larger ddpg.total_frames trains on)",
+            stacklevel=4,
+        )
 
 
 #: the settings a checkpoint's optimisers and noise carry, which a resumed run takes from its

@@ -440,18 +440,26 @@ def fit_theta(
     return result
 
 
-def check_sandwich(per_agent: torch.Tensor, k: int, n_nuisance: int) -> None:
+def check_sandwich(
+    per_agent: torch.Tensor,
+    k: int,
+    n_nuisance: int,
+    field: str = "covariance",
+    agents: Sequence[str] | None = None,
+) -> None:
     """Refuse the sandwich covariance where an agent has fewer trials (``per_agent``, ``[A]``)
     than fitted coordinates (``k`` of θ, ``n_nuisance``): its middle, one outer product of
     scores per trial, is then singular, and the intervals would claim some combination of the
-    parameters known exactly."""
+    parameters known exactly. The error names the setting ``field`` and the agent by its
+    label in ``agents`` (default ``agent i``)."""
     fewest = int(per_agent.min())
     if fewest < k + n_nuisance:
-        agent = int(per_agent.argmin())
+        i = int(per_agent.argmin())
+        agent = f"agent {i}" if agents is None else agents[i]
         raise ValueError(
-            f"covariance: 'sandwich' needs at least as many trials per agent as fitted "
-            f"coordinates ({k + n_nuisance}: {k} of θ, {n_nuisance} nuisance); agent {agent} "
-            f"has {fewest}: use covariance='hessian'"
+            f"{field}: 'sandwich' needs at least as many trials per agent as fitted "
+            f"coordinates ({k + n_nuisance}: {k} of θ, {n_nuisance} nuisance); {agent} has "
+            f"{fewest}; expected {field}=hessian for so few trials"
         )
 
 

@@ -36,7 +36,7 @@ from irc_torchrl.algorithms.calibration import (
     simulate_at_fits,
 )
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
-from irc_torchrl.algorithms.fit import FitResult, fit_theta, particle_check
+from irc_torchrl.algorithms.fit import FitResult, check_sandwich, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
@@ -341,6 +341,11 @@ def fit_recordings(
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
+        if config.covariance == "sandwich":  # refused before any fit, naming the recording
+            n_trials = torch.tensor([len(recording) for recording in recordings])
+            n_nuisance = action_model.nuisance_init.numel()
+            labels = [str(path) for path in paths]
+            check_sandwich(n_trials, len(space.free_names), n_nuisance, agents=labels)
         stages = recording_stages(
             out, config, ckpt["path"], model, recordings, space.free_names, seed, target, resume
         )
@@ -719,6 +724,15 @@ def _write_beliefs(
     write_npz(path, arrays)
 
 
+def _interval(entry: Mapping[str, Any], name: str) -> str:
+    """Parameter ``name``'s interval in ``entry`` for a table, an end within 1e-12 of 0 (a
+    bound at 0, reached to rounding) printed as 0."""
+    low, high = (
+        0.0 if abs(x) < 1e-12 else x for x in (entry["ci_low"][name], entry["ci_high"][name])
+    )
+    return f"[{low:.4g}, {high:.4g}]"
+
+
 def _traded_off(correlation: Mapping[str, Mapping[str, float | None]]) -> str:
     """The pairs of parameters whose estimates correlate at least :data:`TRADED_OFF`, most
     correlated first (``""`` if none)."""
@@ -755,11 +769,10 @@ def format_fit(summary: dict[str, Any]) -> str:
             header += f"{'true':>9}  " if truth else ""
             lines.append(header + f"{'identified':<11}unit")
             for name in summary["free"]:
-                ci = f"[{agent['ci_low'][name]:.4g}, {agent['ci_high'][name]:.4g}]"
+                ci = _interval(agent, name)
                 row = f"  {name:<13}{agent['theta_hat'][name]:>9.4g}  {ci:<21}"
                 if calibrated:
-                    ci = f"[{calibrated['ci_low'][name]:.4g}, {calibrated['ci_high'][name]:.4g}]"
-                    row += f"{ci:<21}"
+                    row += f"{_interval(calibrated, name):<21}"
                 row += f"{truth[name]:>9.4g}  " if truth else ""
                 row += f"{'yes' if agent['identified'][name] else 'NO':<11}{units.get(name, '')}"
                 lines.append(row)

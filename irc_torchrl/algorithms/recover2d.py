@@ -339,7 +339,9 @@ def recover_firefly2d(
     action_model = _recovery_action_model(config, actor, model)
     if config.fit.covariance == "sandwich":
         n_nuisance = action_model.nuisance_init.numel()
-        check_sandwich(torch.tensor([config.n_trials]), len(space.free_names), n_nuisance)
+        check_sandwich(
+            torch.tensor([config.n_trials]), len(space.free_names), n_nuisance, "fit.covariance"
+        )
     start = time.perf_counter()
     trials, theta_true, mistaken = simulate_recovery_agents(
         model, actor, config, None if progress is None else partial(progress, "simulate")
