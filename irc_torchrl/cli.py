@@ -20,6 +20,8 @@ __all__ = ["main"]
 
 #: a ``key=value`` setting (``max_iter=60``, ``theta.g_v=1.2``) among positional arguments
 KEY_VALUE = re.compile(r"^[A-Za-z_][\w.]*=")
+#: a setting's key alone (``max_iter``), which a stray argument may be
+KEY = re.compile(r"^[A-Za-z_][\w.]*$")
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -590,19 +592,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     takes_settings = hasattr(args, "overrides")
     stray = [item for item in extra if not (takes_settings and KEY_VALUE.match(item))]
     if stray:
-        form = f" (irc {args.command} takes settings as key=value)" if takes_settings else ""
+        bare = takes_settings and any(KEY.match(item) for item in stray)  # a key without "="
+        form = f" (irc {args.command} takes settings as key=value)" if bare else ""
         parser.error(f"unrecognized arguments: {' '.join(stray)}{form}")
     if extra:
         args.overrides = [*args.overrides, *extra]
-    with warnings.catch_warnings():
-        warnings.formatwarning = partial(_format_warning, args.command)
-        try:
-            _check_arguments(args)
-            return args.run(args)
-        except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
-            message = error.args[0] if isinstance(error, KeyError) and error.args else error
-            print(f"irc {args.command}: error: {message}", file=sys.stderr)
-            return 2
+    formatwarning = warnings.formatwarning  # catch_warnings does not restore it
+    warnings.formatwarning = partial(_format_warning, args.command)
+    try:
+        _check_arguments(args)
+        return args.run(args)
+    except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
+        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        print(f"irc {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    finally:
+        warnings.formatwarning = formatwarning
 
 
 def _format_warning(command: str, message: Warning | str, *args: Any, **kwargs: Any) -> str:

@@ -84,26 +84,33 @@ def test_the_defaults_a_commands_help_names_are_its_configs(command, config):
     parser = build_parser()
     (commands,) = (a for a in parser._actions if a.dest == "command")
     overrides = next(a for a in commands.choices[command]._actions if a.dest == "overrides")
-    named = re.findall(r"(\w+) \((?:[^()]*?[;:,] )?default ([\w.]+)\)", overrides.help)
-    assert len(named) >= 5
+    named = re.findall(r"(\w+) \((?:[^()]*?[;:,] )?default ([\w.]+)[;)]", overrides.help)
+    keys = {"simulate": {"n_agents", "n_trials", "motor_noise", "lapse", "threads"},
+            "fit": {"n_screen", "n_starts", "max_iter", "motor_noise", "lapse", "fit_lapse",
+                    "threads", "workers"}}  # fmt: skip
+    assert {key for key, _ in named} == keys[command]
     for key, default in named:
         value = getattr(config, key)
         assert str(value).lower() == default, key
 
 
 def test_a_commands_warnings_are_one_line_like_its_errors(tmp_path):
-    """Not Python's ``file:line: UserWarning`` with the source line that raised it."""
+    """Not Python's ``file:line: UserWarning`` with the source line that raised it; after the
+    command, the process's warnings take Python's form again."""
     code = (
-        "import sys, warnings\n"
+        "import warnings\n"
         "from irc_torchrl import cli\n"
         "def warn(args):\n"
         "    warnings.warn('report: no trials/ in here')\n"
         "    return 0\n"
         "cli._report = warn\n"
-        f"sys.exit(cli.main(['report', {str(tmp_path)!r}]))\n"
+        f"assert cli.main(['report', {str(tmp_path)!r}]) == 0\n"
+        "warnings.warn('after the command')\n"
     )
     ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert ran.stderr == "irc report: warning: report: no trials/ in here\n"
+    lines = ran.stderr.splitlines()
+    assert lines[0] == "irc report: warning: report: no trials/ in here"
+    assert "UserWarning: after the command" in lines[1]  # Python's own form again
 
 
 def test_a_setting_without_its_equals_sign_is_refused_saying_the_form(tmp_path, capsys):
@@ -111,6 +118,9 @@ def test_a_setting_without_its_equals_sign_is_refused_saying_the_form(tmp_path, 
         main(["fit", "a.csv", "--out", str(tmp_path), "max_iter", "1"])
     err = capsys.readouterr().err
     assert "unrecognized arguments: max_iter 1 (irc fit takes settings as key=value)" in err
+    with pytest.raises(SystemExit):  # a mistyped option is not a setting
+        main(["fit", "a.csv", "--out", str(tmp_path), "--seeed", "1"])
+    assert capsys.readouterr().err.strip().endswith("unrecognized arguments: --seeed 1")
 
 
 def test_a_recording_named_like_a_setting_is_a_recording(tmp_path, monkeypatch):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import json
+import site
 import subprocess
 import sys
 from pathlib import Path
@@ -288,13 +289,22 @@ def test_a_tasks_numpy_arrays_key_its_stages_in_full_and_a_raising_repr_does_not
     assert keys[0] == keys[1] != keys[2] and boxed[0] == boxed[1] != boxed[2]
     model = Firefly2DModel()
     model.odd = _Unprintable()
-    assert stage_key({}, checkpoint, model) not in {*keys, *boxed}
+    odd = stage_key({}, checkpoint, model)
+    model.odd = frozenset([_Unprintable()])
+    assert len({odd, stage_key({}, checkpoint, model), *keys, *boxed}) == 6
+    records = []  # a structured array with an object field: by its contents, not its pointers
+    for _ in range(2):
+        model = Firefly2DModel()
+        record = (int("123456"), 1.0)  # an equal int, a new object each time
+        model.records = np.array([record], dtype=[("id", object), ("v", float)])
+        records.append(stage_key({}, checkpoint, model))
+    assert records[0] == records[1]
 
 
-def test_a_tasks_key_reads_the_user_modules_its_class_runs(tmp_path, monkeypatch):
+def test_a_tasks_key_reads_the_user_code_its_class_runs(tmp_path, monkeypatch):
     """The source of a task's own file, of a base class's file and of a helper module they
-    import key its stages (an edit of any one keys others); installed packages and this
-    library do not enter as files."""
+    import key its stages (an edit of any one keys others), by name, not by where they lie;
+    installed packages and this library do not enter as files."""
     (tmp_path / "shapes.py").write_text("def radius():\n    return 0.3\n")
     (tmp_path / "base.py").write_text(
         "from irc_torchrl.envs.firefly2d import Firefly2DModel\n"
@@ -308,9 +318,8 @@ def test_a_tasks_key_reads_the_user_modules_its_class_runs(tmp_path, monkeypatch
     for name in ("shapes", "base", "task"):
         monkeypatch.delitem(sys.modules, name, raising=False)
     task = importlib.import_module("task").Task
-    assert stages_module._user_sources(Firefly2DModel) == []
-    assert [p.name for p in stages_module._user_sources(task)] == ["base.py", "shapes.py",
-                                                                   "task.py"]  # fmt: skip
+    assert stages_module._user_sources(Firefly2DModel) == {}
+    assert list(stages_module._user_sources(task)) == ["base", "shapes", "task"]
     checkpoint = resolve_checkpoint("firefly2d")
     keys = [stage_key({}, checkpoint, task())]
     for name in ("shapes.py", "base.py", "task.py"):
@@ -318,6 +327,42 @@ def test_a_tasks_key_reads_the_user_modules_its_class_runs(tmp_path, monkeypatch
         path.write_text(path.read_text() + "# edited\n")
         keys.append(stage_key({}, checkpoint, task()))
     assert len(set(keys)) == 4
+    moved = tmp_path / "moved"  # the same code elsewhere (a cluster job's own copy)
+    moved.mkdir()
+    for name in ("shapes.py", "base.py", "task.py"):
+        (moved / name).write_bytes((tmp_path / name).read_bytes())
+        monkeypatch.delitem(sys.modules, name[:-3])
+    monkeypatch.syspath_prepend(str(moved))
+    elsewhere = importlib.import_module("task").Task
+    assert Path(sys.modules["task"].__file__).parent == moved
+    assert stage_key({}, checkpoint, elsewhere()) == keys[-1]
+
+
+def test_a_task_in_a_package_is_keyed_by_every_file_of_it_wherever_it_is_installed(
+    tmp_path, monkeypatch
+):
+    """Every module of the task's package keys it, imported or not (so a later import does not
+    change the key), also where the package is installed among site-packages; another
+    installed package it uses does not."""
+    package = tmp_path / "labtask"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "extra.py").write_text("SCALE = 2\n")
+    (package / "task.py").write_text(
+        "from irc_torchrl.envs.firefly2d import Firefly2DModel\nimport helpers\n"
+        "class LabTask(Firefly2DModel):\n    pass\n"
+    )
+    (tmp_path / "helpers.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ("labtask", "labtask.task", "labtask.extra", "helpers"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    task = importlib.import_module("labtask.task").LabTask
+    files = ["helpers", "labtask/__init__.py", "labtask/extra.py", "labtask/task.py"]
+    assert list(stages_module._user_sources(task)) == files
+    importlib.import_module("labtask.extra")
+    assert list(stages_module._user_sources(task)) == files
+    monkeypatch.setattr(site, "getsitepackages", lambda: [str(tmp_path)])  # installed there
+    assert list(stages_module._user_sources(task)) == files[1:]
 
 
 def test_a_resuming_run_says_what_it_read(tmp_path):

@@ -81,42 +81,77 @@ def stage_key(
 
 def _digest_model(digest: Any, model: TaskModel) -> None:
     """Feed a task model to ``digest``: its class, the source of its class and of the user
-    modules that class reads (a class defined in a notebook has none), and its attributes
-    (what it was built with)."""
+    code that class reads (a class defined in a notebook has none), and its attributes (what
+    it was built with)."""
     task = type(model)
     digest.update(f"{task.__module__}.{task.__qualname__}".encode())
-    for path in _user_sources(task):
-        digest.update(path.as_posix().encode())
+    for name, path in _user_sources(task).items():
+        digest.update(name.encode())
         digest.update(path.read_bytes())
     _digest_value(digest, "model", model, set())
 
 
-def _user_sources(task: type) -> list[Path]:
-    """The files of the user's own code a task class runs: the modules of its class and base
-    classes and, transitively, the modules theirs import (their names, functions and classes),
-    leaving out the standard library, installed packages and this library (keyed by
-    :func:`_code_digest`)."""
+def _user_sources(task: type) -> dict[str, Path]:
+    """The files of the user's own code a task class runs, by names that do not depend on
+    where they lie (``unit/relative/path.py``), in order.
+
+    A unit is a top-level package, every ``.py`` file under it whichever are imported, or a
+    top-level module. The units are those of the task's class and its task base classes
+    (wherever installed) and, transitively, those their modules use (the modules, functions
+    and classes they hold), leaving out the standard library, other installed packages and
+    this library (keyed by :func:`_code_digest`)."""
     paths = sysconfig.get_paths()
-    shared = [paths[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")]
-    shared += [*site.getsitepackages(), site.getusersitepackages()]
-    shared = [Path(p).resolve() for p in shared] + [Path(irc_torchrl.__file__).parent.resolve()]
-    found: dict[str, Path] = {}
-    pending = [sys.modules.get(cls.__module__) for cls in task.__mro__]
+    stdlib = [paths["stdlib"], paths["platstdlib"]]
+    installed = [paths["purelib"], paths["platlib"], *site.getsitepackages()]
+    installed.append(site.getusersitepackages())
+    classes = [cls for cls in task.__mro__ if issubclass(cls, TaskModel) and cls is not TaskModel]
+    own = {cls.__module__.partition(".")[0] for cls in classes}
+    units: dict[str, list[Path]] = {}
+    walked: set[str] = set()
+    pending = [sys.modules.get(cls.__module__) for cls in classes]
     while pending:
         module = pending.pop()
-        file = getattr(module, "__file__", None)
-        if module is None or file is None or module.__name__ in found:
+        if module is None or module.__name__ in walked:
             continue
-        path = Path(file).resolve()
-        if any(path.is_relative_to(root) for root in shared) or not path.is_file():
+        walked.add(module.__name__)
+        unit = module.__name__.partition(".")[0]
+        if unit not in units:
+            roots = _unit_roots(unit)
+            shared = stdlib if unit in own else [*stdlib, *installed]
+            outside = unit == irc_torchrl.__name__ or any(_under(r, shared) for r in roots)
+            units[unit] = [] if outside else roots
+        if not units[unit]:
             continue
-        found[module.__name__] = path
         for value in vars(module).values():
             if inspect.ismodule(value):
                 pending.append(value)
             elif inspect.isclass(value) or inspect.isroutine(value):
                 pending.append(sys.modules.get(getattr(value, "__module__", None) or ""))
-    return sorted(found.values())
+    files = {}
+    for unit, roots in units.items():
+        for root in roots:
+            if root.is_file():
+                files[unit] = root
+                continue
+            for path in root.rglob("*.py"):
+                files[f"{unit}/{path.relative_to(root).as_posix()}"] = path
+    return dict(sorted(files.items()))
+
+
+def _unit_roots(unit: str) -> list[Path]:
+    """Where the top-level module or package ``unit`` lies: its file, or its folders (more than
+    one for a namespace package); none for a module without a file (built in, a notebook's)."""
+    top = sys.modules.get(unit)
+    folders = getattr(top, "__path__", None)
+    if folders is not None:
+        return [Path(folder).resolve() for folder in folders if Path(folder).is_dir()]
+    file = getattr(top, "__file__", None)
+    return [Path(file).resolve()] if file and Path(file).is_file() else []
+
+
+def _under(path: Path, roots: Iterable[str]) -> bool:
+    """Whether ``path`` lies in one of the folders ``roots``."""
+    return any(path.is_relative_to(Path(root).resolve()) for root in roots)
 
 
 def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int = 0) -> None:
@@ -127,8 +162,8 @@ def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int
     if isinstance(value, torch.Tensor):
         _digest_tensor(digest, name, value)
         return
-    if isinstance(value, np.ndarray) and value.dtype != object:
-        digest.update(f"{name}{value.dtype.str}{list(value.shape)}".encode())
+    if isinstance(value, np.ndarray) and not value.dtype.hasobject:
+        digest.update(f"{name}{value.dtype.descr}{list(value.shape)}".encode())
         digest.update(np.ascontiguousarray(value).tobytes())
         return
     plain = value is None or isinstance(value, (bool, int, float, complex, str, bytes))
@@ -140,10 +175,10 @@ def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int
         items = sorted(((str(k), v) for k, v in value.items()), key=lambda kv: kv[0])
     elif isinstance(value, (list, tuple)):
         items = [(str(i), v) for i, v in enumerate(value)]
-    elif isinstance(value, np.ndarray):  # of objects
+    elif isinstance(value, np.ndarray):  # holding objects
         items = [(str(list(value.shape)), value.tolist())]
     elif isinstance(value, (set, frozenset)):
-        items = [(str(i), v) for i, v in enumerate(sorted(value, key=repr))]
+        items = [(str(i), v) for i, v in enumerate(sorted(value, key=_repr))]
     elif inner is not None:
         items = sorted(inner.items())
     else:
