@@ -11,6 +11,7 @@ import math
 
 import pytest
 import torch
+from torchrl.envs import TransformedEnv
 
 from irc_torchrl.algorithms.calibration import interval_pivots
 from irc_torchrl.algorithms.ensemble import (
@@ -21,10 +22,11 @@ from irc_torchrl.algorithms.ensemble import (
     theta_grid,
 )
 from irc_torchrl.algorithms.fit import fit_theta, particle_check, profile_intervals
+from irc_torchrl.algorithms.recordings import fit_space
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import Firefly2DConfig
-from irc_torchrl.envs import Firefly1DModel, Firefly2DEnv, Firefly2DModel
+from irc_torchrl.envs import EKFBelief, Firefly1DModel, Firefly2DEnv, Firefly2DModel
 from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model, make_actor
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
@@ -119,6 +121,94 @@ def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
     for kwargs, message in cases:
         with pytest.raises((TypeError, ValueError), match=message):
             fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1, **kwargs)
+
+
+def test_the_loss_names_a_policy_given_for_its_action_model_and_a_space_with_nothing_free(
+    shipped,
+):
+    actor, model = shipped
+    with pytest.raises(TypeError, match="action_model: expected an action model with nuisance"):
+        InverseRationalLoss(model, actor)
+    space = model.theta_space
+    held_at = space.default()[space.free_mask].tolist()
+    frozen = space.fix(**dict(zip(space.free_names, held_at, strict=True)))
+    with pytest.raises(ValueError, match="theta_space: every parameter is fixed"):
+        InverseRationalLoss(model, censored_action_model(actor, model), frozen)
+
+
+def test_recovered_beliefs_check_theta_nuisance_and_trials(shipped, two_agents):
+    """Once a [2, 8] θ lost its last parameter, a [1, 9] θ served both agents and a NaN
+    action gave NaN beliefs, silently."""
+    actor, model = shipped
+    held, theta = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), n_agents=2)
+    nuisance = loss.nuisance.detach()
+    nan_action = held.clone()
+    nan_action["action"][0, 0, 0, 0] = torch.nan
+    cases = [
+        ((theta[:, :-1], nuisance, held), r"theta: expected shape \[..., 9\]"),
+        ((theta[:1], nuisance, held), r"theta: expected one θ per agent, \[2, 9\], got \[1"),
+        ((theta * 10, nuisance, held), "is outside its space"),
+        ((theta, nuisance[:, :1], held), r"nuisance: expected shape \[2, 2\], got \[2, 1\]"),
+        ((theta, nuisance, nan_action), "field 'action' has NaN or inf at agent 0, trial 0"),
+    ]
+    for args, message in cases:
+        with pytest.raises(ValueError, match=message):
+            loss.recovered_beliefs(*args)
+
+
+def test_trials_hold_one_target_and_world_per_trial_and_float_actions(shipped, two_agents):
+    """The fits read the target and the world's θ at each trial's first step; a continuous
+    task's actions truncated to integers once moved θ̂ without a word."""
+    actor, model = shipped
+    held, theta = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), n_agents=2)
+    for key in ("target", "task_theta"):
+        moved = held.clone()
+        moved[key][1, 2, 4:] += 0.01
+        with pytest.raises(ValueError, match=f"field '{key}' at agent 1, trial 2, step 4 differs"):
+            loss(moved)
+    rounded = held.clone().set("action", held["action"].long())
+    with pytest.raises(TypeError, match="field 'action': expected a floating-point tensor"):
+        fit_theta(loss, rounded, max_iter=1)
+
+
+def test_a_loss_with_renamed_keys_fits_trials_under_those_names(shipped, two_agents):
+    """``set_keys`` held for the loss's forward but not for ``fit_theta``, which asked for
+    the default names; a field missing is named as the loss reads it."""
+    actor, model = shipped
+    held, _ = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), n_agents=2)
+    loss.set_keys(state="pos", action="act")
+    renamed = held.clone().rename_key_("state", "pos").rename_key_("action", "act")
+    result = fit_theta(loss, renamed, max_iter=1, n_screen=2, n_starts=1)
+    assert result.theta_hat.shape == (2, 9) and torch.isfinite(result.log_likelihood).all()
+    with pytest.raises(KeyError, match=r"missing field\(s\) \['pos', 'act'\]; this loss reads"):
+        loss(held)
+
+
+def test_a_float64_default_dtype_keeps_the_networks_in_float32(tmp_path):
+    """Under it the shipped policy came back in float64 and a rollout failed deep in torch."""
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        actor, model, _ = load_ensemble_policy("firefly2d")
+        theta = model.theta_space.default(torch.float32).expand(2, -1)
+        trials = simulate_agents(model, actor, theta, 2, seed=0)
+    finally:
+        torch.set_default_dtype(default)
+    assert {p.dtype for p in actor.parameters()} == {torch.float32}
+    assert trials["state"].dtype == torch.float32 and trials["mask"].any()
+    with pytest.raises(ValueError, match="seed: expected an integer in"):
+        simulate_agents(model, actor, theta, 2, seed=None)
+
+
+def test_a_belief_filter_of_another_task_and_a_string_of_names_are_refused():
+    env = TransformedEnv(Firefly2DEnv(batch_size=[2]), EKFBelief(Firefly1DModel()))
+    with pytest.raises(ValueError, match=r"EKFBelief: the env's 'state' is \[2, 5\], its model"):
+        env.rollout(2)
+    with pytest.raises(TypeError, match="free: expected a list of parameter names, got the str"):
+        fit_space(Firefly2DModel().theta_space, "g_v", {})
 
 
 def test_the_hard_e_step_refuses_belief_features_that_do_not_broadcast(shipped):

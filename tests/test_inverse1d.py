@@ -330,6 +330,9 @@ def test_fisher_intervals_identification_and_bounds(space):
     iv = fisher_intervals(space, theta_hat, u, singular)
     assert iv.identified[0, 0] and not iv.identified[0, 1] and iv.identified[1, 0]
     assert torch.isfinite(iv.std[0, 0]) and torch.isinf(iv.std[0, 1])
+    # its covariances are unknown as its sd is (not the pseudo-inverse's finite values)
+    assert iv.covariance[0, 1].isinf().all() and iv.covariance[0, :, 1].isinf().all()
+    assert torch.isfinite(iv.covariance[0, 0, 0]) and torch.isfinite(iv.covariance[1]).all()
     torch.testing.assert_close(iv.low[0, 1], low[1])
     torch.testing.assert_close(iv.high[0, 1], high[1])
     # a flat direction that mixes two parameters takes both

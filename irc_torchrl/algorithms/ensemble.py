@@ -1215,8 +1215,9 @@ def load_ensemble_policy(
 
     ``source`` is a path or the name of a packaged checkpoint (default: the shipped one); the
     actor and the model (its action spec) are built on ``device``, whatever torch's default
-    device is. ``model``: the task of the user's own the checkpoint was trained on, built on
-    ``device`` (its name and θ space are checked); ``None``: the 2D firefly task.
+    device is, the actor in float32 whatever its default dtype. ``model``: the task of the
+    user's own the checkpoint was trained on, built on ``device`` (its name and θ space are
+    checked); ``None``: the 2D firefly task.
     """
     with torch.device(resolve_device(str(device))):
         config, model, ckpt = _load(source, ("best_actor",), model)

@@ -28,7 +28,6 @@ from tensordict import TensorDictBase
 from irc_torchrl.algorithms.runtime import check_workers, flushing_denormals
 from irc_torchrl.checks import count, positive_number
 from irc_torchrl.checks import seed as check_seed
-from irc_torchrl.data.trajectories import validate_trials
 from irc_torchrl.objectives.fisher import (
     Z95,
     Intervals,
@@ -241,13 +240,14 @@ def fit_theta(
         raise ValueError(f"covariance: expected one of {COVARIANCES}, got {covariance!r}")
     if intervals not in INTERVALS:
         raise ValueError(f"intervals: expected one of {INTERVALS}, got {intervals!r}")
-    trials = validate_trials(trials, loss.model)
+    trials = loss.validate(trials)
     space = loss.theta_space
     n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
     k = int(free.sum())
     if covariance == "sandwich":
-        check_sandwich(trials["mask"].any(-1).sum(-1), k, loss.action_model.nuisance_init.numel())
+        per_agent = trials[loss.tensor_keys.mask].any(-1).sum(-1)
+        check_sandwich(per_agent, k, loss.action_model.nuisance_init.numel())
     bounded = loss.bounded.to(device)
     if starts is not None:
         starts = space.validate(starts, "starts").double()
@@ -506,25 +506,11 @@ def _checked_point(
     coordinates there ``[A, k + m]`` (``nuisance`` defaulting to the action model's initial
     value), for the checks made at a given θ rather than a fit's."""
     count("draws", draws)
-    trials = validate_trials(trials, loss.model)
-    space = loss.theta_space
-    n_agents, device = trials.shape[0], trials.device
-    theta = space.validate(theta, "theta")
-    if theta.shape != (n_agents, space.dim):
-        raise ValueError(
-            f"theta: expected one θ per agent, [{n_agents}, {space.dim}], got {list(theta.shape)}"
-        )
-    init = loss.action_model.nuisance_init
     if nuisance is None:
-        nuisance = init.expand(n_agents, -1)
-    if not isinstance(nuisance, torch.Tensor) or not nuisance.is_floating_point():
-        raise TypeError(f"nuisance: expected a float tensor [{n_agents}, {init.numel()}]")
-    if nuisance.shape != (n_agents, init.numel()):
-        raise ValueError(
-            f"nuisance: expected shape [{n_agents}, {init.numel()}], got {list(nuisance.shape)}"
-        )
-    if not torch.isfinite(nuisance).all():
-        raise ValueError("nuisance: expected finite values (the fit's coordinates), got NaN or inf")
+        n_agents = loss.validate(trials).shape[0]
+        nuisance = loss.action_model.nuisance_init.expand(n_agents, -1)
+    trials = loss.checked(theta, nuisance, trials)
+    space, device = loss.theta_space, trials.device
     theta_free = space.to_unconstrained(theta.detach().double().to(device))[:, space.free_mask]
     return trials, theta_free, torch.cat([theta_free, nuisance.detach().double().to(device)], -1)
 
@@ -607,7 +593,7 @@ def profile_intervals(
     Wald interval, keep the Wald endpoints.
     """
     _check_iterations(max_iter, tol)
-    trials = validate_trials(trials, loss.model)
+    trials = loss.validate(trials)
     if trials.shape[0] != result.theta_hat.shape[0]:
         raise ValueError(
             f"trials: expected the fit's {result.theta_hat.shape[0]} agent(s), "

@@ -199,6 +199,8 @@ def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> The
 
     The others are held at ``fixed[name]`` where given, else at their default.
     """
+    if isinstance(free, str):  # its letters would be taken for names
+        raise TypeError(f"free: expected a list of parameter names, got the string {free!r}")
     values = _theta_values(fixed, "theta", space)
     for name in values:
         space[name]  # unknown names: a KeyError listing the valid ones

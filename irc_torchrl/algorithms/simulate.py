@@ -17,6 +17,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
 
+from irc_torchrl import checks
 from irc_torchrl.checks import count, positive_number
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
@@ -105,6 +106,7 @@ def simulate_agents(
         raise ValueError(f"theta: expected [n_agents, {space.dim}], got {list(theta.shape)}")
     n_agents = theta.shape[0]
     batch = (n_agents, count("n_trials", n_trials))
+    seed = checks.seed("seed", seed)
     world = None
     if task_theta is not None:
         world = space.validate(task_theta, "task_theta")

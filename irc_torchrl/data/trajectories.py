@@ -30,9 +30,10 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
     """Return ``trials`` as ``[n_agents, n_trials, T]`` if they are well formed, else raise.
 
     Checks presence and shapes of every field, that ``mask`` marks a non-empty prefix of
-    each trial, that recorded steps are finite, that actions lie in the task's action set,
-    that no trial goes on after a chosen stop (the task ends it there), and that
-    ``task_theta`` lies in the θ space.
+    each trial, that recorded steps are finite, that actions are floats for a continuous task
+    and lie in the task's action set, that no trial goes on after a chosen stop (the task
+    ends it there), that ``target`` and ``task_theta`` hold one value per trial (the fits read
+    its first step's), and that ``task_theta`` lies in the θ space.
     """
     if not isinstance(trials, TensorDictBase):
         raise TypeError(
@@ -83,6 +84,11 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
         raise ValueError(
             f"trials: field 'mask' must mark a prefix of each trial; a gap ends at {_where(gaps)}"
         )
+    if continuous and not trials["action"].is_floating_point():
+        raise TypeError(
+            f"trials: field 'action': expected a floating-point tensor (the task's actions are "
+            f"continuous), got {trials['action'].dtype}"
+        )
     for key in ("state", "target", "action"):
         value = trials[key]
         if value.is_floating_point():
@@ -104,6 +110,15 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
     bad = space.outside(task_theta).any(-1) & mask
     if bad.any():  # the first such step's values, named
         space.validate(task_theta[bad][:1], f"trials: field 'task_theta' at {_where(bad)}")
+    for key in ("target", "task_theta"):  # read at each trial's first step
+        value = trials[key]
+        first = value[..., :1, :].expand_as(value)
+        bad = ~torch.isclose(value, first, rtol=1e-6, atol=1e-9).all(-1) & mask
+        if bad.any():
+            raise ValueError(
+                f"trials: field {key!r} at {_where(bad)} differs from its trial's first step; "
+                "expected one value per trial"
+            )
     return trials
 
 

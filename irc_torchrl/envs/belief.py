@@ -152,6 +152,13 @@ class EKFBelief(Transform):
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         batch = observation_spec.shape
         ds = self.model.state_dim
+        for key, dim in (("state", ds), (self.theta_key, self.model.theta_space.dim)):
+            spec = observation_spec.get(key, None)
+            if spec is not None and spec.shape[-1:] != (dim,):
+                raise ValueError(
+                    f"EKFBelief: the env's {key!r} is {list(spec.shape)}, its model's "
+                    f"({self.model.name}) [..., {dim}]; expected the env's own task model"
+                )
         observation_spec["belief"] = Composite(
             mean=Unbounded(shape=(*batch, ds), device=observation_spec.device),
             cov=Unbounded(shape=(*batch, ds, ds), device=observation_spec.device),

@@ -65,7 +65,7 @@ def make_actor(
         out_features=spec.shape[-1],
         num_cells=_widths(hidden),
         activation_class=_activation(activation),
-    )
+    ).float()  # as the env's states, whatever torch's default dtype
     return TensorDictSequential(
         BeliefFeatures(model),
         Actor(mlp, in_keys=["features"], out_keys=["param"]),
@@ -82,7 +82,7 @@ def make_critic(
         out_features=1,
         num_cells=_widths(hidden),
         activation_class=_activation(activation),
-    )
+    ).float()
     return TensorDictSequential(
         BeliefFeatures(model),
         ValueOperator(mlp, in_keys=["features", "action"]),

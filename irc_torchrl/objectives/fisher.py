@@ -53,7 +53,11 @@ def batched_hessian(
 
 @dataclass
 class Intervals:
-    """θ̂ with standard deviations and 95% intervals, natural units, ``[n, d]`` each."""
+    """θ̂'s standard deviations ``std``, 95% intervals ``low``–``high`` and ``identified``
+    flags (the interval spans less than half the prior range), natural units, ``[n, d]`` each
+    (a fixed parameter: zero width, identified), and ``covariance`` ``[n, k, k]`` of the ``k``
+    free parameters (delta method; infinite in the row and column of a parameter without an
+    interval, whose ``std`` is infinite)."""
 
     std: torch.Tensor
     low: torch.Tensor
@@ -153,6 +157,8 @@ def fisher_intervals(
     # judged by the interval's width, not the delta-method sd, which vanishes on a bound
     identified = narrow(space, ci_low, ci_high) & torch.isfinite(std)
     covariance = cov_u[:, :k, :k] * slope.unsqueeze(-1) * slope.unsqueeze(-2)
+    lost = unbounded.unsqueeze(-1) | unbounded.unsqueeze(-2)  # as a calibration's void factor
+    covariance = covariance.masked_fill(lost, torch.inf)
     return Intervals(
         std=std,
         low=ci_low,

@@ -102,6 +102,11 @@ class InverseRationalLoss(LossModule):
             )
         if moments not in MOMENT_RULES:
             raise ValueError(f"moments: expected one of {MOMENT_RULES}, got {moments!r}")
+        if not all(hasattr(action_model, name) for name in ("nuisance_init", "log_prob")):
+            raise TypeError(
+                "action_model: expected an action model with nuisance_init and log_prob (e.g. "
+                f"CensoredGaussianActionModel around the policy), got {type(action_model).__name__}"
+            )
         self.method = method
         self.moments = moments
         check_mixture(model, components, final_steps)
@@ -118,6 +123,11 @@ class InverseRationalLoss(LossModule):
             )
         self.world = world
         free = self.theta_space.free_mask
+        if not free.any():
+            raise ValueError(
+                "theta_space: every parameter is fixed; expected at least one to fit "
+                "(ThetaSpace.free)"
+            )
         start = self.theta_space.to_unconstrained(self.theta_space.default(torch.float64))[free]
         self.theta_free = nn.Parameter(start.expand(n_agents, -1).clone())
         self.nuisance = nn.Parameter(
@@ -310,7 +320,10 @@ class InverseRationalLoss(LossModule):
         ``("belief", "mean")`` and ``("belief", "cov")`` are the agent's belief; with
         ``method="marginal"`` the mean is its posterior mean given the actions so far and
         ``("belief", "mean_cov")`` says how well the actions pin it down (zero for ``map``).
+        θ ``[A, d]``, the nuisance ``[A, dn]`` and the trials are checked first
+        (:meth:`checked`).
         """
+        trials = self.checked(theta, nuisance, trials)
         theta_b, nuisance_b, state, action, target, mask, task_theta = self._fields(
             theta, nuisance, trials
         )
@@ -387,23 +400,62 @@ class InverseRationalLoss(LossModule):
         drawn = (mean + (chol @ noise.unsqueeze(-1)).squeeze(-1)).detach()
         return log_prob(nxt), log_prob(drawn)
 
+    def validate(self, trials: TensorDictBase) -> TensorDictBase:
+        """``trials`` as ``[n_agents, n_trials, T]`` if well formed (:func:`validate_trials`),
+        read under this loss's keys (:meth:`set_keys`), else a one-line error."""
+        if not isinstance(trials, TensorDictBase):
+            return validate_trials(trials, self.model)  # refused, naming the type
+        present = trials.keys(include_nested=True)
+        named = {name: getattr(self.tensor_keys, name) for name in TRIAL_KEYS}
+        missing = [key for key in named.values() if key not in present]
+        if missing:
+            raise KeyError(
+                f"trials: missing field(s) {missing}; this loss reads {list(named.values())} "
+                "(set_keys names them)"
+            )
+        validate_trials(  # under the default names, which its messages give
+            TensorDict(
+                {name: trials.get(key) for name, key in named.items()},
+                batch_size=trials.batch_size,
+            ),
+            self.model,
+        )
+        return trials if trials.ndim == 3 else trials.unsqueeze(0)
+
+    def checked(
+        self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
+    ) -> TensorDictBase:
+        """``trials`` validated (:meth:`validate`) with θ ``[n_agents, d]`` inside its space and
+        a finite nuisance ``[n_agents, dn]`` for them, else a one-line error naming the field."""
+        trials = self.validate(trials)
+        n_agents, dn = trials.shape[0], self.action_model.nuisance_init.numel()
+        theta = self.theta_space.validate(theta, "theta")
+        if theta.shape != (n_agents, self.theta_space.dim):
+            raise ValueError(
+                f"theta: expected one θ per agent, [{n_agents}, {self.theta_space.dim}], "
+                f"got {list(theta.shape)}"
+            )
+        if not isinstance(nuisance, torch.Tensor) or not nuisance.is_floating_point():
+            raise TypeError(f"nuisance: expected a float tensor [{n_agents}, {dn}]")
+        if nuisance.shape != (n_agents, dn):
+            raise ValueError(
+                f"nuisance: expected shape [{n_agents}, {dn}], got {list(nuisance.shape)}"
+            )
+        if not torch.isfinite(nuisance).all():
+            raise ValueError(
+                "nuisance: expected finite values (the fit's coordinates), got NaN or inf"
+            )
+        return trials
+
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         """``loss_nll`` of held trials ``[n_agents, n_trials, T]`` and each agent's
-        ``log_likelihood``; malformed trials are refused first (:func:`validate_trials`)."""
+        ``log_likelihood``; malformed trials are refused first (:meth:`validate`)."""
         if tensordict.ndim != 3 or tensordict.shape[0] != self.theta_free.shape[0]:
             raise ValueError(
                 f"trials: expected batch dims [{self.theta_free.shape[0]} agents, n_trials, T], "
                 f"got {list(tensordict.batch_size)}"
             )
-        present = tensordict.keys(include_nested=True)
-        named = {name: getattr(self.tensor_keys, name) for name in TRIAL_KEYS}
-        validate_trials(  # under the default names, which its messages give
-            TensorDict(
-                {name: tensordict.get(key) for name, key in named.items() if key in present},
-                batch_size=tensordict.batch_size,
-            ),
-            self.model,
-        )
+        self.validate(tensordict)
         theta = self.theta(self.theta_free)
         log_likelihood = self.log_likelihood(theta, self.nuisance, tensordict)
         return TensorDict(
