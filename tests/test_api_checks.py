@@ -123,17 +123,22 @@ def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
             fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1, **kwargs)
 
 
-def test_the_loss_names_a_policy_given_for_its_action_model_and_a_space_with_nothing_free(
-    shipped,
+def test_the_loss_names_a_policy_given_for_its_action_model_and_a_fit_with_nothing_free(
+    shipped, two_agents
 ):
+    """A space with every parameter fixed scores trials (a specialist's θ) but fits nothing:
+    the fit once failed inside torch's Sobol engine."""
     actor, model = shipped
+    held, _ = two_agents
     with pytest.raises(TypeError, match="action_model: expected an action model with nuisance"):
         InverseRationalLoss(model, actor)
     space = model.theta_space
     held_at = space.default()[space.free_mask].tolist()
     frozen = space.fix(**dict(zip(space.free_names, held_at, strict=True)))
+    loss = InverseRationalLoss(model, censored_action_model(actor, model), frozen, n_agents=2)
+    assert torch.isfinite(loss(held)["log_likelihood"]).all()
     with pytest.raises(ValueError, match="theta_space: every parameter is fixed"):
-        InverseRationalLoss(model, censored_action_model(actor, model), frozen)
+        fit_theta(loss, held, max_iter=1)
 
 
 def test_recovered_beliefs_check_theta_nuisance_and_trials(shipped, two_agents):
@@ -147,7 +152,7 @@ def test_recovered_beliefs_check_theta_nuisance_and_trials(shipped, two_agents):
     nan_action["action"][0, 0, 0, 0] = torch.nan
     cases = [
         ((theta[:, :-1], nuisance, held), r"theta: expected shape \[..., 9\]"),
-        ((theta[:1], nuisance, held), r"theta: expected one θ per agent, \[2, 9\], got \[1"),
+        ((theta[:1], nuisance, held), r"one θ per agent \(or per trial\), \[2, 9\], got \[1"),
         ((theta * 10, nuisance, held), "is outside its space"),
         ((theta, nuisance[:, :1], held), r"nuisance: expected shape \[2, 2\], got \[2, 1\]"),
         ((theta, nuisance, nan_action), "field 'action' has NaN or inf at agent 0, trial 0"),
@@ -155,6 +160,10 @@ def test_recovered_beliefs_check_theta_nuisance_and_trials(shipped, two_agents):
     for args, message in cases:
         with pytest.raises(ValueError, match=message):
             loss.recovered_beliefs(*args)
+    per_trial = [x.unsqueeze(1).expand(-1, held.shape[1], -1) for x in (theta, nuisance)]
+    assert (loss.recovered_beliefs(*per_trial, held) == loss.recovered_beliefs(
+        theta, nuisance, held
+    )).all()  # fmt: skip
 
 
 def test_trials_hold_one_target_and_world_per_trial_and_float_actions(shipped, two_agents):
@@ -168,6 +177,9 @@ def test_trials_hold_one_target_and_world_per_trial_and_float_actions(shipped, t
         moved[key][1, 2, 4:] += 0.01
         with pytest.raises(ValueError, match=f"field '{key}' at agent 1, trial 2, step 4 differs"):
             loss(moved)
+        rounded = held.clone()  # float32's rounding of values a file's checks found equal
+        rounded[key][1, 2, 4:] *= 1 + 2e-6
+        loss(rounded)
     rounded = held.clone().set("action", held["action"].long())
     with pytest.raises(TypeError, match="field 'action': expected a floating-point tensor"):
         fit_theta(loss, rounded, max_iter=1)

@@ -245,6 +245,10 @@ def fit_theta(
     n_agents, device = trials.shape[0], trials.device
     free = space.free_mask
     k = int(free.sum())
+    if k == 0:
+        raise ValueError(
+            "theta_space: every parameter is fixed; expected at least one to fit (ThetaSpace.free)"
+        )
     if covariance == "sandwich":
         per_agent = trials[loss.tensor_keys.mask].any(-1).sum(-1)
         check_sandwich(per_agent, k, loss.action_model.nuisance_init.numel())

@@ -335,7 +335,8 @@ def _tensors(state: Any) -> dict[str, torch.Tensor]:
 
 
 def format_resumed(summary: Mapping[str, Any]) -> list[str]:
-    """The line saying which fits a resuming run read (none for a run that did not resume)."""
+    """The line saying which stages (fits and checks) a resuming run read (none for a run that
+    did not resume)."""
     if "resumed" not in summary:
         return []
     if not summary["resumed"]:

@@ -111,9 +111,10 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
     if bad.any():  # the first such step's values, named
         space.validate(task_theta[bad][:1], f"trials: field 'task_theta' at {_where(bad)}")
     for key in ("target", "task_theta"):  # read at each trial's first step
-        value = trials[key]
+        value = trials[key].double()
         first = value[..., :1, :].expand_as(value)
-        bad = ~torch.isclose(value, first, rtol=1e-6, atol=1e-9).all(-1) & mask
+        # beyond float32's rounding of values a file's checks found equal (rtol 1e-6)
+        bad = ~torch.isclose(value, first, rtol=1e-5, atol=1e-6).all(-1) & mask
         if bad.any():
             raise ValueError(
                 f"trials: field {key!r} at {_where(bad)} differs from its trial's first step; "

@@ -123,11 +123,6 @@ class InverseRationalLoss(LossModule):
             )
         self.world = world
         free = self.theta_space.free_mask
-        if not free.any():
-            raise ValueError(
-                "theta_space: every parameter is fixed; expected at least one to fit "
-                "(ThetaSpace.free)"
-            )
         start = self.theta_space.to_unconstrained(self.theta_space.default(torch.float64))[free]
         self.theta_free = nn.Parameter(start.expand(n_agents, -1).clone())
         self.nuisance = nn.Parameter(
@@ -320,10 +315,10 @@ class InverseRationalLoss(LossModule):
         ``("belief", "mean")`` and ``("belief", "cov")`` are the agent's belief; with
         ``method="marginal"`` the mean is its posterior mean given the actions so far and
         ``("belief", "mean_cov")`` says how well the actions pin it down (zero for ``map``).
-        θ ``[A, d]``, the nuisance ``[A, dn]`` and the trials are checked first
-        (:meth:`checked`).
+        θ ``[A, d]`` and the nuisance ``[A, dn]`` (either may be per trial, ``[A, n, ·]``) and the
+        trials are checked first (:meth:`checked`).
         """
-        trials = self.checked(theta, nuisance, trials)
+        trials = self.checked(theta, nuisance, trials, per_trial=True)
         theta_b, nuisance_b, state, action, target, mask, task_theta = self._fields(
             theta, nuisance, trials
         )
@@ -423,23 +418,31 @@ class InverseRationalLoss(LossModule):
         return trials if trials.ndim == 3 else trials.unsqueeze(0)
 
     def checked(
-        self, theta: torch.Tensor, nuisance: torch.Tensor, trials: TensorDictBase
+        self,
+        theta: torch.Tensor,
+        nuisance: torch.Tensor,
+        trials: TensorDictBase,
+        per_trial: bool = False,
     ) -> TensorDictBase:
         """``trials`` validated (:meth:`validate`) with θ ``[n_agents, d]`` inside its space and
-        a finite nuisance ``[n_agents, dn]`` for them, else a one-line error naming the field."""
+        a finite nuisance ``[n_agents, dn]`` for them (with ``per_trial`` also one per trial,
+        ``[n_agents, n_trials, ·]``), else a one-line error naming the field."""
         trials = self.validate(trials)
         n_agents, dn = trials.shape[0], self.action_model.nuisance_init.numel()
         theta = self.theta_space.validate(theta, "theta")
-        if theta.shape != (n_agents, self.theta_space.dim):
+        agents = (n_agents, trials.shape[1]) if per_trial and theta.ndim == 3 else (n_agents,)
+        each = "per agent" + (" (or per trial)" if per_trial else "")
+        if theta.shape != (*agents, self.theta_space.dim):
             raise ValueError(
-                f"theta: expected one θ per agent, [{n_agents}, {self.theta_space.dim}], "
+                f"theta: expected one θ {each}, {list(agents) + [self.theta_space.dim]}, "
                 f"got {list(theta.shape)}"
             )
         if not isinstance(nuisance, torch.Tensor) or not nuisance.is_floating_point():
             raise TypeError(f"nuisance: expected a float tensor [{n_agents}, {dn}]")
-        if nuisance.shape != (n_agents, dn):
+        agents = (n_agents, trials.shape[1]) if per_trial and nuisance.ndim == 3 else (n_agents,)
+        if nuisance.shape != (*agents, dn):
             raise ValueError(
-                f"nuisance: expected shape [{n_agents}, {dn}], got {list(nuisance.shape)}"
+                f"nuisance: expected shape {list(agents) + [dn]}, got {list(nuisance.shape)}"
             )
         if not torch.isfinite(nuisance).all():
             raise ValueError(
