@@ -383,17 +383,18 @@ def _strip(summary: dict) -> dict:
     return summary
 
 
-def _interrupt_at_dataset(monkeypatch, module, n: int) -> None:
-    """Stop ``module``'s run when it simulates its ``n``-th calibration dataset."""
-    simulate, calls = module.simulate_at_fits, []
+def _stop_at_call(monkeypatch, module, name: str, n: int) -> list[int]:
+    """Count the calls of ``module.name`` from now on, stopping the run at the ``n``-th."""
+    work, calls = getattr(module, name), []
 
     def stop(*args, **kwargs):
         calls.append(1)
         if len(calls) == n:
             raise Interrupted
-        return simulate(*args, **kwargs)
+        return work(*args, **kwargs)
 
-    monkeypatch.setattr(module, "simulate_at_fits", stop)
+    monkeypatch.setattr(module, name, stop)
+    return calls
 
 
 def _count_fits(monkeypatch, module) -> list[str]:
@@ -415,7 +416,7 @@ def test_an_interrupted_recovery_resumes_to_the_uninterrupted_numbers(tmp_path, 
     config = Recovery2DConfig(**TINY)
     whole = run_recovery(config, tmp_path / "whole", show_progress=False)
     with monkeypatch.context() as patch:
-        _interrupt_at_dataset(patch, recover2d, 2)
+        _stop_at_call(patch, recover2d, "simulate_at_fits", 2)
         with pytest.raises(Interrupted):
             run_recovery(config, tmp_path / "run", show_progress=False)
     assert not (tmp_path / "run" / "summary.json").exists()
@@ -493,7 +494,7 @@ def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
     recordings.fit_recordings(files, tmp_path / "whole", whole, progress=False)
     out = str(tmp_path / "run")
     with monkeypatch.context() as patch:
-        _interrupt_at_dataset(patch, recordings, 2)
+        _stop_at_call(patch, recordings, "simulate_at_fits", 2)
         with pytest.raises(Interrupted):
             main(["fit", *files, "--out", out, "--quiet", *settings])
     fits = _count_fits(monkeypatch, recordings)
@@ -507,20 +508,6 @@ def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
     summary, reference = (json.loads((tmp_path / d / "summary.json").read_text()) for d in
                           ("run", "whole"))  # fmt: skip
     assert _strip(summary) == _strip(reference)
-
-
-def _stop_at_call(monkeypatch, module, name: str, n: int) -> list[int]:
-    """Count the calls of ``module.name`` from now on, stopping the run at the ``n``-th."""
-    work, calls = getattr(module, name), []
-
-    def stop(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == n:
-            raise Interrupted
-        return work(*args, **kwargs)
-
-    monkeypatch.setattr(module, name, stop)
-    return calls
 
 
 def test_a_recovery_stopped_in_its_particle_checks_resumes_with_those_done(tmp_path, monkeypatch):

@@ -510,10 +510,9 @@ def _checked_point(
     coordinates there ``[A, k + m]`` (``nuisance`` defaulting to the action model's initial
     value), for the checks made at a given θ rather than a fit's."""
     count("draws", draws)
-    if nuisance is None:
-        n_agents = loss.validate(trials).shape[0]
-        nuisance = loss.action_model.nuisance_init.expand(n_agents, -1)
     trials = loss.checked(theta, nuisance, trials)
+    if nuisance is None:
+        nuisance = loss.action_model.nuisance_init.expand(trials.shape[0], -1)
     space, device = loss.theta_space, trials.device
     theta_free = space.to_unconstrained(theta.detach().double().to(device))[:, space.free_mask]
     return trials, theta_free, torch.cat([theta_free, nuisance.detach().double().to(device)], -1)

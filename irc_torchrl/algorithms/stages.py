@@ -252,10 +252,11 @@ class Stages:
     ) -> tuple[FitResult, float]:
         """Stage ``name``'s fit and the seconds it took (an earlier run's, where read), on
         ``device``: ``work()``'s, saved once finished, or one kept by an earlier run."""
-        kept = self._read(name, FitResult.from_state_dict) if self.resume else None
-        if kept is not None:
-            return kept[0].to(device), kept[1]
-        return self._run(name, work, lambda result: result.cpu().state_dict())
+
+        def restore(state: Any) -> FitResult:
+            return FitResult.from_state_dict(state).to(device)
+
+        return self._stage(name, work, lambda r: r.cpu().state_dict(), restore)
 
     def check(
         self,
@@ -265,15 +266,24 @@ class Stages:
     ) -> tuple[dict[str, torch.Tensor], float]:
         """Stage ``name``'s check of a fit (tensors by name, as :func:`particle_check` gives
         them) and its seconds, kept and read as :meth:`fit` keeps and reads a fit."""
-        kept = self._read(name, _tensors) if self.resume else None
-        if kept is not None:
-            return {key: value.to(device) for key, value in kept[0].items()}, kept[1]
-        return self._run(name, work, lambda result: {k: v.cpu() for k, v in result.items()})
 
-    def _run(
-        self, name: str, work: Callable[[], Any], state: Callable[[Any], Any]
+        def restore(state: Any) -> dict[str, torch.Tensor]:
+            return {key: value.to(device) for key, value in _tensors(state).items()}
+
+        return self._stage(name, work, lambda r: {k: r[k].cpu() for k in r}, restore)
+
+    def _stage(
+        self,
+        name: str,
+        work: Callable[[], Any],
+        state: Callable[[Any], Any],
+        restore: Callable[[Any], Any],
     ) -> tuple[Any, float]:
-        """``work()``'s result and seconds, its ``state`` saved as stage ``name``."""
+        """Stage ``name`` and its seconds: an earlier run's, ``restore``d from its kept state,
+        where resuming finds it, else ``work()``'s, its ``state`` saved."""
+        kept = self._read(name, restore) if self.resume else None
+        if kept is not None:
+            return kept
         begin = time.perf_counter()
         result = work()
         seconds = time.perf_counter() - begin

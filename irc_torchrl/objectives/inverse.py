@@ -420,29 +420,35 @@ class InverseRationalLoss(LossModule):
     def checked(
         self,
         theta: torch.Tensor,
-        nuisance: torch.Tensor,
+        nuisance: torch.Tensor | None,
         trials: TensorDictBase,
         per_trial: bool = False,
     ) -> TensorDictBase:
         """``trials`` validated (:meth:`validate`) with θ ``[n_agents, d]`` inside its space and
         a finite nuisance ``[n_agents, dn]`` for them (with ``per_trial`` also one per trial,
-        ``[n_agents, n_trials, ·]``), else a one-line error naming the field."""
+        ``[n_agents, n_trials, ·]``; ``None``: the action model's initial one, nothing to
+        check), else a one-line error naming the field."""
         trials = self.validate(trials)
         n_agents, dn = trials.shape[0], self.action_model.nuisance_init.numel()
+
+        def rows(x: torch.Tensor) -> tuple[int, ...]:
+            """The leading dimensions ``x`` must have: per agent, or per trial where allowed."""
+            return (n_agents, trials.shape[1]) if per_trial and x.ndim == 3 else (n_agents,)
+
         theta = self.theta_space.validate(theta, "theta")
-        agents = (n_agents, trials.shape[1]) if per_trial and theta.ndim == 3 else (n_agents,)
         each = "per agent" + (" (or per trial)" if per_trial else "")
-        if theta.shape != (*agents, self.theta_space.dim):
+        if theta.shape != (*rows(theta), self.theta_space.dim):
             raise ValueError(
-                f"theta: expected one θ {each}, {list(agents) + [self.theta_space.dim]}, "
+                f"theta: expected one θ {each}, {[*rows(theta), self.theta_space.dim]}, "
                 f"got {list(theta.shape)}"
             )
+        if nuisance is None:
+            return trials
         if not isinstance(nuisance, torch.Tensor) or not nuisance.is_floating_point():
             raise TypeError(f"nuisance: expected a float tensor [{n_agents}, {dn}]")
-        agents = (n_agents, trials.shape[1]) if per_trial and nuisance.ndim == 3 else (n_agents,)
-        if nuisance.shape != (*agents, dn):
+        if nuisance.shape != (*rows(nuisance), dn):
             raise ValueError(
-                f"nuisance: expected shape {list(agents) + [dn]}, got {list(nuisance.shape)}"
+                f"nuisance: expected shape {[*rows(nuisance), dn]}, got {list(nuisance.shape)}"
             )
         if not torch.isfinite(nuisance).all():
             raise ValueError(
