@@ -55,6 +55,8 @@ def train_ddpg(n_envs: int, batches: int, updates_per_batch: int, seed: int) -> 
         explore,
         frames_per_batch=frames_per_batch,
         total_frames=frames_per_batch * batches,
+        # the policy keeps no state between steps (the belief is the env's), so the collector
+        # needs no InitTracker (TorchRL's check asks for one for this policy, and warns)
         auto_register_policy_transforms=False,
     )
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100_000), batch_size=128)

@@ -22,13 +22,20 @@ from irc_torchrl.algorithms.ensemble import (
     theta_grid,
 )
 from irc_torchrl.algorithms.fit import fit_theta, particle_check, profile_intervals
+from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 from irc_torchrl.algorithms.recordings import fit_space
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import Firefly2DConfig
 from irc_torchrl.envs import EKFBelief, Firefly1DModel, Firefly2DEnv, Firefly2DModel
+from irc_torchrl.envs.belief import BeliefReward
 from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
-from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model, make_actor
+from irc_torchrl.modules.actor_critic import (
+    FeaturePolicy,
+    censored_action_model,
+    make_actor,
+    make_critic,
+)
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -199,20 +206,37 @@ def test_a_loss_with_renamed_keys_fits_trials_under_those_names(shipped, two_age
         loss(held)
 
 
-def test_a_float64_default_dtype_keeps_the_networks_in_float32(tmp_path):
-    """Under it the shipped policy came back in float64 and a rollout failed deep in torch."""
+def _seeded_numbers() -> list[torch.Tensor]:
+    """What a seed gives: Algorithm 1's 1D Q, simulated trials with motor noise and lapses,
+    and a fit of them."""
+    model1d = Firefly1DModel()
+    small = QIterationConfig(n_envs=32, rounds=2, steps_per_round=20, sweeps=3)
+    q = train_factorised_q(model1d, small, seed=0)
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    theta = model.theta_space.default(torch.float32).expand(2, -1)
+    agent = motor_noise_policy(actor, model.action_spec, 0.1, lapse=0.1)
+    trials = simulate_agents(model, agent, theta, 2, seed=0)
+    loss = InverseRationalLoss(model, censored_action_model(actor, model))
+    held = trials.select("state", "action", "target", "mask", "task_theta")
+    fit = fit_theta(loss, held, max_iter=2, n_screen=2, n_starts=1)
+    numbers = [q.weight, trials["state"], trials["action"], fit.theta_hat, fit.log_likelihood]
+    return numbers + [p for p in actor.parameters()]
+
+
+def test_a_float64_default_dtype_gives_the_same_numbers_in_float32():
+    """Under it the shipped policy came back in float64 and a rollout failed deep in torch, and
+    TorchRL's noise modules drew other numbers from the same seed."""
+    expected = _seeded_numbers()
     default = torch.get_default_dtype()
     torch.set_default_dtype(torch.float64)
     try:
-        actor, model, _ = load_ensemble_policy("firefly2d")
-        theta = model.theta_space.default(torch.float32).expand(2, -1)
-        trials = simulate_agents(model, actor, theta, 2, seed=0)
+        numbers = _seeded_numbers()
+        assert torch.get_default_dtype() == torch.float64  # the caller's, restored
     finally:
         torch.set_default_dtype(default)
-    assert {p.dtype for p in actor.parameters()} == {torch.float32}
-    assert trials["state"].dtype == torch.float32 and trials["mask"].any()
-    with pytest.raises(ValueError, match="seed: expected an integer in"):
-        simulate_agents(model, actor, theta, 2, seed=None)
+    assert [x.dtype for x in numbers] == [x.dtype for x in expected]
+    assert all(torch.equal(x, y) for x, y in zip(numbers, expected, strict=True))
+    assert {x.dtype for x in numbers[5:]} == {torch.float32}
 
 
 def test_a_belief_filter_of_another_task_and_a_string_of_names_are_refused():
@@ -403,3 +427,59 @@ def test_what_the_checks_must_not_refuse(shipped, two_agents):
     shared = InverseRationalLoss(model, censored_action_model(actor, model), world="shared")
     assert shared.in_keys == ["state", "action", "target", "mask", "task_theta"]
     assert make_actor(model, np.array([8, 8])) is not None
+
+
+@pytest.mark.parametrize(
+    "noise, lapse, message",
+    [
+        (torch.full((3, 2), 0.1), 0.0, r"motor_noise: expected one value per agent, .*\[3, 2\]"),
+        (0.1, torch.full((3, 1), 0.05), r"lapse: expected one value per agent, .*\[3, 1\]"),
+    ],
+)
+def test_noise_or_lapse_per_trial_instead_of_per_agent_is_refused(shipped, noise, lapse, message):
+    """With as many trials as agents, ``[n_agents, da]`` would broadcast over trials silently."""
+    actor, model = shipped
+    theta = model.theta_space.default().expand(3, -1)
+    policy = motor_noise_policy(actor, model.action_spec, noise, lapse)
+    with pytest.raises(ValueError, match=message):
+        simulate_agents(model, policy, theta, 3, seed=0)
+    each = motor_noise_policy(actor, model.action_spec, torch.full((3, 1, 2), 0.1), lapse=0.0)
+    assert simulate_agents(model, each, theta, 3, seed=0)["mask"].any()
+
+
+@pytest.mark.parametrize("maker", [make_actor, make_critic])
+def test_the_ddpg_networks_refuse_a_task_of_discrete_actions(maker):
+    """The 1D task's Categorical spec has no action dimension: an IndexError deep in MLP."""
+    with pytest.raises(TypeError, match=rf"model: {maker.__name__} needs continuous actions"):
+        maker(Firefly1DModel())
+
+
+@pytest.mark.parametrize(
+    "transform, message",
+    [
+        (lambda m: BeliefReward(m), r"BeliefReward: the env has no belief to score; expected EKF"),
+        (lambda m: EKFBelief(m, theta_key="nope"), r"EKFBelief: the env has no 'nope' to filter"),
+    ],
+)
+def test_a_belief_transform_missing_what_it_reads_names_it(transform, message):
+    """Both failed inside the rollout with a bare KeyError of TensorDict's."""
+    model = Firefly2DModel()
+    env = TransformedEnv(Firefly2DEnv(model=model, batch_size=[2]), transform(model))
+    with pytest.raises(KeyError, match=message):
+        env.rollout(2)
+    with pytest.raises(KeyError, match=message):
+        _ = env.observation_spec  # and checking the specs, before any step
+
+
+def test_unseeded_envs_draw_their_own_worlds_and_torch_manual_seed_repeats_them():
+    """``seed=None`` was seed 0: every unseeded env (each worker of a SerialEnv) drew the same
+    θ and targets, whatever torch.manual_seed said."""
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        first, second = (Firefly2DEnv(batch_size=[4]).reset() for _ in range(2))
+        torch.manual_seed(0)
+        again = Firefly2DEnv(batch_size=[4]).reset()
+    assert not torch.equal(first["theta"], second["theta"])
+    assert not torch.equal(first["target"], second["target"])
+    assert torch.equal(first["theta"], again["theta"])
+    assert torch.equal(first["target"], again["target"])

@@ -476,3 +476,18 @@ def test_checkpoints_fall_at_batch_ends_so_a_resume_misses_no_update(tmp_path, m
     # updates begin once the n-step buffer holds warmup_frames (at 512 frames here); from then
     # every 64 frames bring 2 updates, none of them left for a resume to make
     assert all(s["frames"] == 512 + 32 * s["updates"] for s in saved)
+
+
+def test_training_under_a_float64_default_dtype_trains_the_same_float32_networks(tmp_path, trained):
+    """TorchRL's noise module draws in the default dtype: under float64 the run failed (float64
+    actions into the float32 critic); it runs in float32 and restores the caller's default."""
+    result, _ = trained
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        again = train_ensemble(tiny(), out=tmp_path, progress=False)
+        assert torch.get_default_dtype() == torch.float64
+    finally:
+        torch.set_default_dtype(default)
+    for name, value in result.actor.state_dict().items():
+        assert torch.equal(again.actor.state_dict()[name], value), name

@@ -112,3 +112,18 @@ def test_training_runs_where_its_config_says(tmp_path, monkeypatch):
     reports = [json.loads((tmp_path / f / "summary.json").read_text()) for f in ("meta", "plain")]
     for key in ("theta_sensitivity", "stop_sharpness"):
         assert reports[0][key] == reports[1][key]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_an_env_moved_to_the_gpu_draws_there_with_its_fixed_theta():
+    """``env.to`` moved the specs only: the CPU generator and fixed θ then met CUDA tensors."""
+    from torchrl.envs import TransformedEnv
+
+    from irc_torchrl.envs import EKFBelief, Firefly2DEnv, Firefly2DModel
+
+    model = Firefly2DModel()
+    base = Firefly2DEnv(model=model, batch_size=(3,), theta=model.theta_space.default(), seed=1)
+    env = TransformedEnv(base, EKFBelief(model)).to("cuda")
+    rollout = env.rollout(5, break_when_any_done=False)
+    assert rollout["state"].device.type == "cuda" and base.rng.device.type == "cuda"
+    assert torch.equal(rollout["theta"][:, 0].cpu(), model.theta_space.default().expand(3, -1))

@@ -1079,7 +1079,7 @@ def _make_collector(
         "frames_per_batch": d.n_envs * d.steps_per_batch,
         "total_frames": max(total_frames, d.n_envs * d.steps_per_batch),
         "init_random_frames": d.warmup_frames if random_start else 0,
-        "auto_register_policy_transforms": False,
+        "auto_register_policy_transforms": False,  # no state between steps: no InitTracker
         "device": device,  # where the policy runs and the batches are stored
     }
     if workers == 1:

@@ -16,6 +16,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import EGreedyModule, QValueModule
 
+from irc_torchrl.algorithms.runtime import float32_default
 from irc_torchrl.checks import check_fields, positive
 from irc_torchrl.envs.belief import BeliefFeatures, BeliefReward, EKFBelief
 from irc_torchrl.envs.model import TaskModel
@@ -134,8 +135,9 @@ def train_factorised_q(
 ) -> FactorisedQ:
     """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)."""
     config = (config if config is not None else QIterationConfig()).validate()
-    with torch.random.fork_rng():
-        torch.manual_seed(seed)  # ε-greedy draws from the global generator
+    # ε-greedy draws from the global generator, in the default dtype
+    with float32_default(), torch.random.fork_rng():
+        torch.manual_seed(seed)
         env = TransformedEnv(
             TaskEnv(model, batch_size=(config.n_envs,), seed=seed),
             Compose(EKFBelief(model), BeliefReward(model)),

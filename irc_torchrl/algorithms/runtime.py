@@ -9,12 +9,19 @@ import torch
 
 from irc_torchrl.checks import resolve_device
 
-__all__ = ["check_workers", "flushing_denormals", "resolve_device", "torch_settings"]
+__all__ = [
+    "check_workers",
+    "float32_default",
+    "flushing_denormals",
+    "resolve_device",
+    "torch_settings",
+]
 
 
 @contextmanager
 def torch_settings(threads: int, flush_denormal: bool) -> Iterator[None]:
-    """Run with ``threads`` torch threads and denormal flushing, then restore both.
+    """Run with ``threads`` torch threads, denormal flushing and a float32 default dtype
+    (:func:`float32_default`), then restore all three.
 
     Small networks run fastest on one thread per process, and denormal floats slow CPUs down
     several-fold; both are settings of the run, not hidden defaults, and must not leak into the
@@ -24,10 +31,26 @@ def torch_settings(threads: int, flush_denormal: bool) -> Iterator[None]:
     torch.set_num_threads(threads)
     torch.set_flush_denormal(flush_denormal)
     try:
-        yield
+        with float32_default():
+            yield
     finally:
         torch.set_num_threads(previous)
         torch.set_flush_denormal(flushing)
+
+
+@contextmanager
+def float32_default() -> Iterator[None]:
+    """Run with torch's default dtype float32, then restore the caller's.
+
+    TorchRL's exploration modules draw their noise in the default dtype: under a float64
+    default a seed would give other draws (and float64 actions the float32 networks refuse).
+    """
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(previous)
 
 
 def flushing_denormals() -> bool:

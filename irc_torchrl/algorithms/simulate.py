@@ -18,6 +18,7 @@ from torchrl.envs import ExplorationType, TransformedEnv, set_exploration_type
 from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor
 
 from irc_torchrl import checks
+from irc_torchrl.algorithms.runtime import float32_default
 from irc_torchrl.checks import count, positive_number
 from irc_torchrl.envs.belief import BeliefFeatures, EKFBelief
 from irc_torchrl.envs.model import TaskModel
@@ -71,9 +72,34 @@ def motor_noise_policy(
         spec, sigma_init=1.0, sigma_end=1.0, annealing_num_steps=1, device="cpu"
     )
     noise.std = std  # the module's noise scale, per action where it is a tensor
+    noise.mean = torch.zeros((), dtype=torch.float32, device="cpu")  # TorchRL: default dtype
     if not torch.as_tensor(lapse, device="cpu").any():
         return TensorDictSequential(actor, noise)
     return TensorDictSequential(actor, noise, Lapse(spec, lapse))
+
+
+def _check_per_agent(policy: TensorDictSequential | None, shape: tuple[int, ...]) -> None:
+    """Refuse a motor noise or lapse that is not one value per agent (``shape``: ``[n_agents,
+    1, *action]``), before the rollout: ``[n_agents, da]`` would spread over trials instead, or
+    fail inside TorchRL's noise module."""
+    if not isinstance(policy, torch.nn.Module):
+        return
+    for module in policy.modules():
+        if isinstance(module, AdditiveGaussianModule):
+            name, value = "motor_noise", module.std
+        elif isinstance(module, Lapse):
+            name, value = "lapse", module.lapse
+        else:
+            continue
+        try:
+            fits = torch.broadcast_shapes(value.shape, shape) == shape
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"{name}: expected one value per agent, broadcasting against {list(shape)} "
+                f"(agents, trials, action), got shape {list(value.shape)}"
+            )
 
 
 def first_trial_mask(done: torch.Tensor) -> torch.Tensor:
@@ -106,6 +132,7 @@ def simulate_agents(
         raise ValueError(f"theta: expected [n_agents, {space.dim}], got {list(theta.shape)}")
     n_agents = theta.shape[0]
     batch = (n_agents, count("n_trials", n_trials))
+    _check_per_agent(policy, (n_agents, 1, *model.action_spec.shape))
     seed = checks.seed("seed", seed)
     world = None
     if task_theta is not None:
@@ -129,7 +156,8 @@ def simulate_agents(
     )
     done = itertools.count(1)
     callback = None if progress is None else lambda *_: progress(next(done), model.max_steps)
-    with torch.random.fork_rng(), torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+    explore = set_exploration_type(ExplorationType.RANDOM)
+    with float32_default(), torch.random.fork_rng(), torch.no_grad(), explore:
         torch.manual_seed(seed)
         rollout = env.rollout(model.max_steps, policy, callback, break_when_any_done=False)
     if progress is not None:  # rollout calls back between steps, not after the last

@@ -8,6 +8,8 @@ of the actor and critic. The inverse objective calls :func:`ekf_step` directly.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -123,9 +125,21 @@ class EKFBelief(Transform):
         self.model = model
         self.theta_key = theta_key
 
+    @staticmethod
+    def _require(present: Iterable, *keys: str) -> None:
+        """A one-line error naming a key the filter reads that the env does not have."""
+        present = set(present)
+        for key in keys:
+            if key not in present:
+                raise KeyError(
+                    f"EKFBelief: the env has no {key!r} to filter with; expected one of "
+                    f"{sorted(map(str, present))}"
+                )
+
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
+        self._require(tensordict_reset.keys(), "state", "target", self.theta_key)
         mean, cov = self.model.initial_belief(
             tensordict_reset["state"], tensordict_reset["target"], tensordict_reset[self.theta_key]
         )
@@ -150,19 +164,21 @@ class EKFBelief(Transform):
         return next_tensordict
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        batch = observation_spec.shape
+        batch, device = observation_spec.shape, observation_spec.device
         ds = self.model.state_dim
+        self._require(observation_spec.keys(), "state", "target", self.theta_key)
         for key, dim in (("state", ds), (self.theta_key, self.model.theta_space.dim)):
-            spec = observation_spec.get(key, None)
-            if spec is not None and spec.shape[-1:] != (dim,):
+            spec = observation_spec[key]
+            if spec.shape[-1:] != (dim,):
                 raise ValueError(
                     f"EKFBelief: the env's {key!r} is {list(spec.shape)}, its model's "
                     f"({self.model.name}) [..., {dim}]; expected the env's own task model"
                 )
         observation_spec["belief"] = Composite(
-            mean=Unbounded(shape=(*batch, ds), device=observation_spec.device),
-            cov=Unbounded(shape=(*batch, ds, ds), device=observation_spec.device),
+            mean=Unbounded(shape=(*batch, ds), device=device),
+            cov=Unbounded(shape=(*batch, ds, ds), device=device),
             shape=batch,
+            device=device,
         )
         return observation_spec
 
@@ -192,6 +208,14 @@ class BeliefReward(Transform):
         )
         next_tensordict.set("reward", reward.to(next_tensordict["reward"].dtype))
         return next_tensordict
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        if observation_spec.get("belief", None) is None:
+            raise KeyError(
+                "BeliefReward: the env has no belief to score; expected EKFBelief before it, "
+                "e.g. Compose(EKFBelief(model), BeliefReward(model))"
+            )
+        return observation_spec
 
     def transform_reward_spec(self, reward_spec: TensorSpec) -> TensorSpec:
         return reward_spec

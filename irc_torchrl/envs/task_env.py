@@ -34,7 +34,8 @@ class TaskEnv(EnvBase):
             the prior.
         task_theta: world θ, likewise; ``None`` means equal to the agent's.
         device: where tensors live.
-        seed: seed of the environment's generator.
+        seed: seed of the environment's generator; ``None`` draws one from torch's global
+            generator (each env its own stream; :func:`torch.manual_seed` fixes them).
     """
 
     batch_locked = True
@@ -63,7 +64,9 @@ class TaskEnv(EnvBase):
         )
         self._make_specs()
         self.rng = torch.Generator(device=self.device if self.device is not None else "cpu")
-        self.set_seed(0 if seed is None else check_seed("seed", seed))
+        if seed is None:  # drawn from torch's global generator: torch.manual_seed sets it
+            seed = int(torch.randint(2**62, (), dtype=torch.int64))
+        self.set_seed(check_seed("seed", seed))
 
     def _check_theta(self, theta: torch.Tensor, field: str) -> torch.Tensor:
         theta = torch.as_tensor(theta, dtype=torch.float32, device=self.device)
@@ -98,6 +101,18 @@ class TaskEnv(EnvBase):
             shape=batch,
             device=device,
         )
+
+    def to(self, device: torch.device | str) -> TaskEnv:
+        """Move the env with its fixed θ and its generator: draws are made where it lives (the
+        generator moves as a new one seeded from the old, so a seed still fixes the draws)."""
+        super().to(device)
+        if self.rng.device != self.device:
+            seed = int(torch.randint(2**62, (), generator=self.rng, device=self.rng.device))
+            self.rng = torch.Generator(device=self.device).manual_seed(seed)
+        self.theta, self.task_theta = (
+            None if x is None else x.to(self.device) for x in (self.theta, self.task_theta)
+        )
+        return self
 
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(int(seed) if seed is not None else 0)

@@ -48,6 +48,17 @@ def _feature_dim(model: TaskModel) -> int:
     return model.belief_feature_dim + model.theta_space.dim
 
 
+def _continuous_actions(model: TaskModel, maker: str) -> int:
+    """The action dimension of a task with continuous actions ``[da]``, else a one-line error."""
+    spec = model.action_spec
+    if len(spec.shape) != 1 or not spec.dtype.is_floating_point:
+        raise TypeError(
+            f"model: {maker} needs continuous actions [da], got {type(spec).__name__} actions of "
+            f"shape {list(spec.shape)} (a discrete task learns a Q: train_factorised_q)"
+        )
+    return spec.shape[-1]
+
+
 def _widths(hidden: Sequence[int]) -> list[int]:
     """The hidden layers' widths, each a positive integer (a width of 0 builds no layer)."""
     if isinstance(hidden, str) or not hasattr(hidden, "__iter__"):
@@ -62,7 +73,7 @@ def make_actor(
     spec = model.action_spec  # one environment's spec: the bounds without batch dimensions
     mlp = MLP(
         in_features=_feature_dim(model),
-        out_features=spec.shape[-1],
+        out_features=_continuous_actions(model, "make_actor"),
         num_cells=_widths(hidden),
         activation_class=_activation(activation),
     ).float()  # as the env's states, whatever torch's default dtype
@@ -78,7 +89,7 @@ def make_critic(
 ) -> TensorDictSequential:
     """``Q(b, a, θ)``: belief features and action → MLP → ``state_action_value``."""
     mlp = MLP(
-        in_features=_feature_dim(model) + model.action_spec.shape[-1],
+        in_features=_feature_dim(model) + _continuous_actions(model, "make_critic"),
         out_features=1,
         num_cells=_widths(hidden),
         activation_class=_activation(activation),

@@ -101,7 +101,9 @@ class BoltzmannActionModel(nn.Module):
         temperature = positive_number("temperature", temperature)
         # a frozen copy: the caller's network stays trainable (and leaves this model as it is)
         self.q_network = copy.deepcopy(q_network).requires_grad_(False)
-        self.nuisance_init = torch.tensor([math.log(temperature)], device="cpu")
+        self.nuisance_init = torch.tensor(
+            [math.log(temperature)], dtype=torch.float32, device="cpu"
+        )
 
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
         """Action logits ``Q / τ``, ``[*B, n_actions]``; ``nuisance`` broadcasts against ``*B``."""
@@ -240,7 +242,8 @@ class CensoredGaussianActionModel(nn.Module):
             names.append("logit_lapse")
             init.append(math.log(lapse / (LAPSE_MAX - lapse)))
         self.nuisance_names = tuple(names)
-        self.nuisance_init = torch.tensor(init, device="cpu")
+        # float32 whatever torch's default dtype: a fit starts from one point
+        self.nuisance_init = torch.tensor(init, dtype=torch.float32, device="cpu")
         #: which nuisance coordinates are bounded logits (held within the fit's bounds)
         self.nuisance_bounded = (False,) * da + (True,) * fit_lapse
 
