@@ -392,7 +392,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "intervals; each costs about the fit again), calibration_tail (shrunk toward all "
         "parameters' tails, or own: each parameter's 95%% quantile alone), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
-        "e.g. units.x=cm units.heading=deg), e.g. max_iter=60",
+        "e.g. units.x=cm units.heading=deg), time_column and trial_column (the columns' "
+        "names; default time and trial), e.g. max_iter=60",
     )
     fit.set_defaults(run=_fit)
     report = commands.add_parser(
@@ -588,14 +589,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``irc`` command; a clear error on bad input exits with status 2."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    # key=value settings may also follow options (`irc fit a.csv --out r max_iter=60`)
-    takes_settings = hasattr(args, "overrides")
-    stray = [item for item in extra if not (takes_settings and KEY_VALUE.match(item))]
+    # key=value settings may also follow options (`irc fit a.csv --out r max_iter=60`), and
+    # recordings too (`irc fit max_iter=60 --out r a.csv`: argparse took the setting as FILE)
+    takes_settings, takes_files = hasattr(args, "overrides"), hasattr(args, "files")
+    recordings = [i for i in extra if takes_files and Path(i).exists()]
+    stray = [
+        item
+        for item in extra
+        if item not in recordings and not (takes_settings and KEY_VALUE.match(item))
+    ]
     if stray:
         bare = takes_settings and any(KEY.match(item) for item in stray)  # a key without "="
         form = f" (irc {args.command} takes settings as key=value)" if bare else ""
         parser.error(f"unrecognized arguments: {' '.join(stray)}{form}")
-    if extra:
+    if extra:  # irc fit's FILE and settings are told apart by _files_and_settings
         args.overrides = [*args.overrides, *extra]
     formatwarning = warnings.formatwarning  # catch_warnings does not restore it
     warnings.formatwarning = partial(_format_warning, args.command)

@@ -211,6 +211,9 @@ class RecordingFitConfig:
     #: units of recorded columns that differ from the task's, e.g. ``units.x=cm``
     #: (docs/trajectory_schema.md lists the known units)
     units: dict = field(default_factory=dict)
+    #: the names of the recordings' time (s) and trial-number columns
+    time_column: str = "time"
+    trial_column: str = "trial"
     #: torch threads (small networks run fastest on one)
     threads: int = 1
     #: processes the recordings are shared among (see ``fit.workers`` of ``irc recover``)
@@ -244,6 +247,11 @@ class RecordingFitConfig:
         _probability(lapse=self.lapse)
         if self.fit_lapse:
             _fitted_lapse_start(self.lapse)
+        if not (self.time_column and self.trial_column) or self.time_column == self.trial_column:
+            raise ValueError(
+                f"config: time_column and trial_column must name two columns, got "
+                f"{self.time_column!r} and {self.trial_column!r}"
+            )
         return self
 
 

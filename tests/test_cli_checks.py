@@ -311,3 +311,12 @@ def test_the_demo_summary_line_lists_the_ratios_and_every_timing():
     }
     last = demo.format_summary(summary).splitlines()[-1]
     assert last == "DP ratio 0.9877 (min per θ 0.912); train_s 1.0, simulate_s 2.0, fit_s 3.5"
+
+
+def test_a_recording_after_the_options_is_a_recording(tmp_path, monkeypatch):
+    """argparse gave the setting before the options to FILE and refused the file after them."""
+    recording = tmp_path / "a.csv"
+    recording.write_text("")
+    argv = ["fit", "max_iter=3", "--out", str(tmp_path / "out"), str(recording), "n_starts=2"]
+    (files, _, config), _ = _handed(monkeypatch, recordings, "fit_recordings", argv)
+    assert (files, config.max_iter, config.n_starts) == ([str(recording)], 3, 2)

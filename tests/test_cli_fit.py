@@ -878,7 +878,8 @@ def _agent(file: str, converged: bool, truth: dict | None = None) -> dict:
 
 
 def test_format_fit_shows_each_truth_and_identification_and_counts_known_unconverged_fits():
-    """The truth column holds θ*, not θ̂; an unidentified parameter reads NO; the coverage line
+    """The truth column holds θ*, not θ̂; an unidentified parameter reads NO, and any of a fit
+    short of its top unsure (NO after 15 iterations read yes after 60); the coverage line
     counts the files whose truth is known, and of those the fits that did not converge."""
     agents = [
         _agent("a.csv", True, {"g_v": 1.4, "g_w": 0.8}),
@@ -896,8 +897,8 @@ def test_format_fit_shows_each_truth_and_identification_and_counts_known_unconve
         ["g_w", "0.75", "[0.5,", "1]", "0.8", "NO"],
     ]
     assert rows[2:4] == [
-        ["g_v", "1.375", "[1.25,", "1.5]", "yes", "m/s"],
-        ["g_w", "0.75", "[0.5,", "1]", "NO"],
+        ["g_v", "1.375", "[1.25,", "1.5]", "unsure", "m/s"],
+        ["g_w", "0.75", "[0.5,", "1]", "unsure"],
     ]
     assert lines[-1] == (
         "map: truth inside the 95% interval (fraction of the 2 files whose truth is known): "
@@ -996,3 +997,18 @@ def test_recordings_of_interleaved_trial_counts_each_get_their_own_fit(
             with torch.no_grad():
                 mean = loss.recovered_beliefs(theta, nuisance, alone)["belief", "mean"][0]
             np.testing.assert_allclose(beliefs[f"{label}/mean"], mean.numpy(), atol=1e-9)
+
+
+def test_a_recordings_own_column_names_are_set_on_the_command_line(simulated, tmp_path):
+    """``time_column`` and ``trial_column`` were read_trials' alone: irc fit refused them."""
+    lines = (simulated / "agent0.csv").read_text().splitlines()
+    header = ["t" if n == "time" else "id" if n == "trial" else n for n in lines[0].split(",")]
+    (tmp_path / "lab.csv").write_text("\n".join([",".join(header), *lines[1:]]) + "\n")
+    out = tmp_path / "fit"
+    settings = ["--quiet", "--method", "map", "--free", "g_v", "max_iter=2", "n_screen=2"]
+    names = ["time_column=t", "trial_column=id"]
+    assert main(["fit", str(tmp_path / "lab.csv"), "--out", str(out), *settings, *names]) == 0
+    (agent,) = json.loads((out / "summary.json").read_text())["agents"]
+    trials = read_trials(simulated / "agent0.csv", Firefly2DModel())
+    assert (agent["n_trials"], agent["n_steps"]) == (20, int(trials["mask"].sum()))
+    assert main(["fit", str(tmp_path / "lab.csv"), "--out", str(out), *settings]) == 2

@@ -216,9 +216,14 @@ def test_a_gap_in_a_trial_is_refused_unless_resampled(tmp_path, model2d, trials2
     slow = {k: v[keep] for k, v in columns.items()}
     slow["time"] = slow["time"] * 2
     _write_raw(slow, path)
-    with pytest.warns(UserWarning, match="resampled"):
+    with pytest.warns(UserWarning, match="resampled every trial") as caught:
         read = read_trials(path, model2d)
     assert read["mask"].sum() > keep.sum()
+    assert [str(w.message).split(": ", 1)[1] for w in caught if "across" in str(w.message)] == [
+        f"trial {longest}: a gap of 0.6 s from 0.2 s was interpolated across (5 model steps, "
+        "actions included, made up; the longest such gap of the recording): cut the trial "
+        "there if the agent was not tracked"
+    ]
 
 
 @pytest.mark.parametrize(
@@ -420,26 +425,34 @@ def test_units_are_converted_to_the_model_units(tmp_path, model2d, trials2d):
     _assert_same(read_trials(tmp_path / "lab.csv", model2d, units=units), trials2d)
 
 
-def test_a_heading_wrapped_into_plus_minus_pi_is_unwrapped(tmp_path, model2d, trials2d):
-    """An arena-frame recording (the task turned by about π) whose heading comes from atan2
-    (wrapped at ±π) reads as the continuous heading the model steps; positions and targets
-    are kept as recorded."""
-    turn = math.pi - 0.02  # the agent starts facing -x: its heading crosses ±π
+@pytest.mark.parametrize(
+    "turn, wrapped, units, branch",
+    [
+        # the agent starts facing -x: atan2's heading crosses ±π
+        (math.pi - 0.02, lambda h: np.angle(np.exp(1j * h)), {}, 0.0),
+        # facing +x, a compass's 0–360° crosses 0 (it was refused, hinting at degrees)
+        (-0.02, lambda h: np.degrees(np.mod(h, 2 * math.pi)), {"heading": "deg"}, 2 * math.pi),
+    ],
+)
+def test_a_wrapped_heading_is_unwrapped(tmp_path, model2d, trials2d, turn, wrapped, units, branch):
+    """An arena-frame recording (the task turned by ``turn``) whose heading is wrapped reads
+    as the continuous heading the model steps, from the file's first value (``branch``: the
+    2π it adds); positions and targets are kept as recorded."""
     cos, sin = math.cos(turn), math.sin(turn)
     columns = {k: v.astype(np.float64) for k, v in trials_to_columns(trials2d, model2d).items()}
     for x, y in (("x", "y"), ("target_x", "target_y")):
         a, b = columns[x], columns[y]
         columns[x], columns[y] = cos * a - sin * b, sin * a + cos * b
-    columns["heading"] = np.angle(np.exp(1j * (columns["heading"] + turn)))
+    columns["heading"] = wrapped(columns["heading"] + turn)
     assert (np.abs(np.diff(columns["heading"])) > math.pi).any()  # the file does wrap
     _write_raw(columns, tmp_path / "arena.csv")
-    back = read_trials(tmp_path / "arena.csv", model2d)
+    back = read_trials(tmp_path / "arena.csv", model2d, units=units)
     expected = trials2d.clone()
     state, target = expected["state"].double(), expected["target"].double()
     for part in (state, target):
         a, b = part[..., 0].clone(), part[..., 1].clone()
         part[..., 0], part[..., 1] = cos * a - sin * b, sin * a + cos * b
-    state[..., 2] += turn
+    state[..., 2] += turn + branch
     expected["state"], expected["target"] = state.float(), target.float()
     _assert_same(back, expected)
 
@@ -522,6 +535,11 @@ def _swap_times(columns):
     return columns
 
 
+def _pooled(columns):
+    """Two sessions in one file, numbering their trials alike."""
+    return {k: np.concatenate([v, v]) for k, v in columns.items()}
+
+
 def _repeat_time(columns):
     rows = _rows(columns, 3)
     columns["time"][rows[2]] = columns["time"][rows[1]]
@@ -568,12 +586,16 @@ MALFORMED = [
      r"trial 1, field 'time': nan at sample 1"),
     ("time goes back", "2d", ".csv", _swap_times, ValueError,
      r"trial 2, field 'time': time goes from 0\.2 s to 0\.1 s.*strictly increasing"),
+    ("two sessions pooled", "2d", ".csv", _pooled, ValueError,
+     r"field 'trial': trial 0 is on rows 0–\d+ and again from row \d+; expected each trial's"),
     ("repeated time", "2d", ".csv", _repeat_time, ValueError,
      r"trial 3, field 'time': time goes from 0\.1 s to 0\.1 s at sample 2"),
     ("missing column", "2d", ".csv", _rename("heading", None), KeyError,
      r"missing column 'heading'; expected columns \['trial', 'time', 'x'"),
     ("misnamed state column", "2d", ".csv", _rename("heading", "headng"), KeyError,
      r"missing column 'heading'; column 'headng' looks like a misnamed 'heading'"),
+    ("state column in capitals", "2d", ".csv", _rename("x", "X"), KeyError,
+     r"missing column 'x'; column 'X' looks like a misnamed 'x'"),
     ("misnamed target column", "2d", ".npz", _rename("target_x", "targetX"), KeyError,
      r"column 'targetX' looks like a misnamed 'target_x'"),
     ("misnamed trial column", "1d", ".csv", _rename("trial", "trials"), KeyError,
@@ -814,6 +836,40 @@ def test_a_velocity_in_another_unit_than_its_positions_is_refused(
     _write_raw(columns, tmp_path / "lab.csv")
     with pytest.raises(ValueError, match=message):
         read_trials(tmp_path / "lab.csv", model2d, units=units)
+
+
+def test_an_action_of_the_other_sign_is_refused_and_a_faster_rig_warned(
+    tmp_path, model2d, trials2d
+):
+    """A joystick's other sign convention, or a rig 1.5× faster than the world's θ, passed
+    every check and gave a converged, confident, wrong θ̂ (g_w on its bound, "identified")."""
+    columns = trials_to_columns(trials2d, model2d)
+    columns["a_w"] = -columns["a_w"].astype(np.float64)
+    _write_raw(columns, tmp_path / "flipped.csv")
+    with pytest.raises(ValueError, match=r"field\(s\) 'w': follow the actions -0\.9\d+× as str"):
+        read_trials(tmp_path / "flipped.csv", model2d)
+    columns = trials_to_columns(trials2d, model2d)
+    for key in ("x", "y", "target_x", "target_y", "v"):  # all moves 1.5× as far
+        columns[key] = columns[key].astype(np.float64) * 1.5
+    _write_raw(columns, tmp_path / "fast.csv")
+    with pytest.warns(UserWarning, match=r"'v': follow the actions 1\.5\d× as strongly .* the "):
+        read_trials(tmp_path / "fast.csv", model2d)
+
+
+@pytest.mark.parametrize("task", ["2d", "1d"])
+def test_targets_in_another_unit_than_the_positions_are_refused(tmp_path, task, request):
+    """Targets in cm beside positions in m passed (their unit is declared apart) and the fit
+    put g_w on its bound, "identified"."""
+    model = request.getfixturevalue(f"model{task}")
+    columns = trials_to_columns(request.getfixturevalue(f"trials{task}"), model)
+    _write_raw(columns, tmp_path / "m.csv")
+    assert read_trials(tmp_path / "m.csv", model)["mask"].any()
+    for name in model.target_names:
+        columns[name] = columns[name].astype(np.float64) * 100
+    _write_raw(columns, tmp_path / "cm.csv")
+    names = "/".join(map(repr, model.target_names))
+    with pytest.raises(ValueError, match=rf"field\(s\) {names}: [\d.]+ from the trial's first"):
+        read_trials(tmp_path / "cm.csv", model)
 
 
 def test_a_semicolon_export_and_a_time_in_ms_are_refused_saying_why(tmp_path, model2d, trials2d):

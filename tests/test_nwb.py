@@ -33,12 +33,21 @@ def test_non_integer_trial_numbers_are_refused_before_writing(tmp_path):
 
 
 def _lab_nwb(
-    path, columns, centimetres=False, between_trials=False, without=(), short=(), offset=0.0
+    path,
+    columns,
+    centimetres=False,
+    between_trials=False,
+    without=(),
+    short=(),
+    offset=0.0,
+    cm_unit=False,
+    rate=False,
 ):
     """An NWB file laid out as the schema says, written the way a lab's rig might: positions
-    in cm declared by NWB's own ``conversion`` (from an origin ``offset`` m away), samples
-    through the gaps between trials, a series not exported, or one a sample short on its own
-    clock."""
+    in cm declared by NWB's own ``conversion`` (from an origin ``offset`` m away) or by their
+    ``unit`` (``cm_unit``), samples through the gaps between trials, a series not exported,
+    one a sample short on its own clock, or every series sampled at a rate (its starting time
+    and rate, no timestamps) with an outcome in words in the trials table."""
     import datetime
     import uuid
 
@@ -49,13 +58,18 @@ def _lab_nwb(
     nwb = NWBFile("lab", str(uuid.uuid4()), datetime.datetime.now(datetime.UTC))
     for name in ("target_x", "target_y"):
         nwb.add_trial_column(name=name, description=name)
+    if rate:
+        nwb.add_trial_column(name="outcome", description="rewarded or missed")
     trial, stamps, start = columns["trial"], np.empty(len(columns["trial"])), 10.0
     for label in dict.fromkeys(trial.tolist()):
         rows = trial == label
         stamps[rows] = start + columns["time"][rows]
-        targets = {n: float(columns[n][rows][0]) for n in ("target_x", "target_y")}
-        nwb.add_trial(start_time=start, stop_time=float(stamps[rows][-1]), id=int(label), **targets)
-        start = float(stamps[rows][-1]) + 2.0
+        per_trial = {n: float(columns[n][rows][0]) for n in ("target_x", "target_y")}
+        if rate:
+            per_trial["outcome"] = "missed"
+        stop = float(stamps[rows][-1])
+        nwb.add_trial(start_time=start, stop_time=stop, id=int(label), **per_trial)
+        start = stop + (model_dt(columns) if rate else 2.0)  # at a rate: no gap in the clock
     data = {n: columns[n].astype(np.float64) for n in ("x", "y", "heading", "v", "w", "a_v", "a_w")}
     if between_trials:  # the rig keeps sampling, the agent parked, between trials
         gaps = np.arange(stamps[0], stamps[-1], 0.05)
@@ -64,30 +78,37 @@ def _lab_nwb(
         order = np.argsort(np.concatenate([stamps, gaps]))
         stamps = np.concatenate([stamps, gaps])[order]
         data = {n: np.concatenate([data[n], parked[n]])[order] for n in data}
-    scale = 100.0 if centimetres else 1.0
+    scale = 100.0 if centimetres or cm_unit else 1.0
+    clock = {"starting_time": float(stamps[0]), "rate": 1 / model_dt(columns)} if rate else {}
     behavior = nwb.create_processing_module("behavior", "behaviour")
     position = SpatialSeries(
         name="position", data=(np.stack([data["x"], data["y"]], -1) - offset) * scale,
-        timestamps=stamps, reference_frame="arena", unit="metres", conversion=1 / scale,
-        offset=offset,
+        timestamps=None if rate else stamps, reference_frame="arena",
+        unit="centimeters" if cm_unit else "metres", conversion=1.0 if cm_unit else 1 / scale,
+        offset=offset, **clock,
     )  # fmt: skip
     behavior.add(Position(spatial_series=position, name="Position"))
+    on_clock = clock or {"timestamps": position}
     heading = SpatialSeries(
-        name="heading", data=data["heading"], timestamps=position, reference_frame="x",
-        unit="radians",
-    )  # fmt: skip
+        name="heading", data=data["heading"], reference_frame="x", unit="radians", **on_clock
+    )
     behavior.add(CompassDirection(name="CompassDirection", spatial_series=[heading]))
     for container, names in (("state", ("v", "w")), ("action", ("a_v", "a_w"))):
         series = [
             TimeSeries(name=n, data=data[n][:-1], timestamps=stamps[:-1], unit="SI")
             if n in short
-            else TimeSeries(name=n, data=data[n], timestamps=position, unit="SI")
+            else TimeSeries(name=n, data=data[n], unit="SI", **on_clock)
             for n in names
             if n not in without
         ]
         behavior.add(BehavioralTimeSeries(name=container, time_series=series))
     with NWBHDF5IO(str(path), "w") as io:
         io.write(nwb)
+
+
+def model_dt(columns) -> float:
+    """The recording's sampling step (the task's: 0.1 s)."""
+    return float(columns["time"][1] - columns["time"][0])
 
 
 def test_a_rigs_nwb_file_is_read_as_nwb_means_it(tmp_path):
@@ -104,6 +125,10 @@ def test_a_rigs_nwb_file_is_read_as_nwb_means_it(tmp_path):
     for name, options in {
         "cm.nwb": {"centimetres": True},
         "rig.nwb": {"between_trials": True},
+        # each failed: 'NoneType' object is not subscriptable; could not convert 'missed';
+        # and the unit read as metres (a file 100× too large)
+        "rate.nwb": {"rate": True},
+        "cm_unit.nwb": {"cm_unit": True},
     }.items():
         _lab_nwb(tmp_path / name, columns, **options)
         back = read_trials(tmp_path / name, model)

@@ -338,7 +338,8 @@ def fit_recordings(
         truths = [_simulated_truth(p, space) for p in paths]
         start = time.perf_counter()
         units = {str(k): str(v) for k, v in config.units.items()}
-        recordings = [read_trials(p, model, units=units) for p in paths]
+        columns = {"time_column": config.time_column, "trial_column": config.trial_column}
+        recordings = [read_trials(p, model, units=units, **columns) for p in paths]
         read_s = time.perf_counter() - start
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
@@ -749,6 +750,15 @@ def _traded_off(correlation: Mapping[str, Mapping[str, float | None]]) -> str:
     return ", ".join(f"{a} ~ {b} (r {r:+.2f})" for r, a, b in pairs)
 
 
+def _identified(agent: Mapping[str, Any], name: str) -> str:
+    """``yes`` or ``NO`` by the curvature at θ̂; ``unsure`` short of the top, where the
+    curvature is not the information the data hold (``NO`` after 15 iterations read ``yes``
+    after 60)."""
+    if not agent["converged"]:
+        return "unsure"
+    return "yes" if agent["identified"][name] else "NO"
+
+
 def format_fit(summary: dict[str, Any]) -> str:
     """A readable table per recording: θ̂, its 95% interval, the truth if known, identified."""
     units = summary.get("units", {})
@@ -776,7 +786,7 @@ def format_fit(summary: dict[str, Any]) -> str:
                 if calibrated:
                     row += f"{_interval(calibrated, name):<21}"
                 row += f"{truth[name]:>9.4g}  " if truth else ""
-                row += f"{'yes' if agent['identified'][name] else 'NO':<11}{units.get(name, '')}"
+                row += f"{_identified(agent, name):<11}{units.get(name, '')}"
                 lines.append(row)
             noise = ", ".join(f"{v:.3g}" for v in agent["motor_noise"])
             held = agent.get("lapse", summary.get("config", {}).get("lapse", 0.0))

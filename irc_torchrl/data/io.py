@@ -33,6 +33,7 @@ from irc_torchrl.data.validate import (
     Trial,
     check_columns,
     check_kinematics,
+    check_targets,
     check_trial,
     required_columns,
     split_trials,
@@ -100,6 +101,7 @@ def read_trials(
     held = _pack(trials, model, time_column, trial_column)
     validate_trials(held, model)
     check_kinematics(held, model, source)
+    check_targets(held, model, source)
     return held
 
 
@@ -396,6 +398,7 @@ def _on_model_grid(
     if isinstance(model.action_spec, Categorical):
         discrete.add(model.action_names[0])
     out = []
+    longest = (0.0, None, 0.0, 0)  # the longest gap resampling fills: s, trial, from, steps
     for label, trial in trials:
         recorded = trial[time_column].astype(np.float64)
         time = recorded - recorded[0]
@@ -416,6 +419,11 @@ def _on_model_grid(
                     f"expected at least one model step ({model.dt} s) to resample"
                 )
             previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
+            if gaps.size:
+                i = int(gaps[np.argmax(np.diff(time)[gaps])])
+                if time[i + 1] - time[i] > longest[0]:
+                    inside = int(((grid > time[i]) & (grid < time[i + 1])).sum())
+                    longest = (float(time[i + 1] - time[i]), label, float(recorded[i]), inside)
             trial = {
                 name: values[previous] if name in discrete else np.interp(grid, time, values)
                 for name, values in trial.items()
@@ -433,6 +441,15 @@ def _on_model_grid(
                 f"{model.max_steps} steps of {model.dt:g} s, so cut or drop longer trials{hint}"
             )
         out.append((label, {**trial, time_column: time}))
+    seconds, label, start, inside = longest
+    if inside:
+        warnings.warn(
+            f"{source}: trial {label}: a gap of {seconds:.6g} s from {start:.6g} s was "
+            f"interpolated across ({inside} model steps, actions included, made up; the "
+            "longest such gap of the recording): cut the trial there if the agent was not "
+            "tracked",
+            stacklevel=3,
+        )
     return out
 
 

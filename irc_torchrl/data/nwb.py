@@ -11,6 +11,7 @@ and its task θ (``theta.<name>`` columns). Trials follow one another with a one
 from __future__ import annotations
 
 import datetime
+import math
 import uuid
 from pathlib import Path
 
@@ -21,12 +22,20 @@ from pynwb.behavior import BehavioralTimeSeries, CompassDirection, Position, Spa
 from irc_torchrl.data.validate import THETA_PREFIX
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["read_nwb", "write_nwb"]
+__all__ = ["UNIT_SCALES", "read_nwb", "unit_scale", "write_nwb"]
 
 #: seconds between the end of one trial and the start of the next on the session clock
 TRIAL_GAP = 1.0
 
 Columns = dict[str, np.ndarray]
+#: the factors to metres and radians of the units an NWB series may name, singular
+UNIT_SCALES = {
+    **dict.fromkeys(("m", "meter", "metre"), 1.0),
+    **dict.fromkeys(("cm", "centimeter", "centimetre"), 0.01),
+    **dict.fromkeys(("mm", "millimeter", "millimetre"), 0.001),
+    **dict.fromkeys(("rad", "radian"), 1.0),
+    **dict.fromkeys(("deg", "degree"), math.pi / 180),
+}
 
 
 def _layout(model: TaskModel) -> tuple[list[str], list[str], list[str]]:
@@ -136,7 +145,7 @@ def read_nwb(
                 f"{path}: missing {err}; expected processing module 'behavior' with a "
                 "Position 'position' SpatialSeries (see docs/trajectory_schema.md)"
             ) from None
-        stamps = np.asarray(pos.timestamps[:], dtype=np.float64)
+        stamps = np.asarray(pos.get_timestamps(), dtype=np.float64)  # or starting time and rate
         data = _values(pos).reshape(len(stamps), -1)
         position, angles, others = _layout(model)
         table: Columns = {n: data[:, i] for i, n in enumerate(position)}
@@ -164,14 +173,23 @@ def read_nwb(
         trials = nwb.trials.to_dataframe()
         trial = np.full(len(stamps), np.nan)
         time = np.full(len(stamps), np.nan)
-        names = [n for n in trials.columns if n not in ("start_time", "stop_time")]
+        # the schema's (a lab's other columns, text among them, are its own business)
+        names = [n for n in trials.columns if n in model.target_names or n.startswith(THETA_PREFIX)]
         per_trial = {n: np.full(len(stamps), np.nan) for n in names}
+        # a trial's bounds hold the samples on them, whatever their floating-point rounding
+        slack = 1e-3 * float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.0
         for label, row in trials.iterrows():
-            rows = (stamps >= row["start_time"]) & (stamps <= row["stop_time"])
+            rows = (stamps >= row["start_time"] - slack) & (stamps <= row["stop_time"] + slack)
             trial[rows] = label
             time[rows] = stamps[rows] - row["start_time"]
             for name, values in per_trial.items():
-                values[rows] = row[name]
+                try:
+                    values[rows] = float(row[name])
+                except (TypeError, ValueError):
+                    raise ValueError(
+                        f"{path}: trials table, trial {label}, column {name!r}: {row[name]!r}; "
+                        "expected a number"
+                    ) from None
     # a rig records between trials too: only the trials table's trials are the task's
     inside = np.isfinite(trial)
     columns = {trial_column: trial, time_column: time, **table, **per_trial}
@@ -179,6 +197,16 @@ def read_nwb(
 
 
 def _values(series: TimeSeries) -> np.ndarray:
-    """A series' data in its unit: NWB stores ``data × conversion + offset`` as the value."""
+    """A series' data in the task's units: NWB stores ``data × conversion + offset`` in the
+    series' ``unit``, which is scaled from centimetres, millimetres or degrees where it names
+    them (:data:`UNIT_SCALES`); any other unit is read as the task's."""
     offset = getattr(series, "offset", 0.0) or 0.0
-    return np.asarray(series.data[:], dtype=np.float64) * series.conversion + offset
+    value = np.asarray(series.data[:], dtype=np.float64) * series.conversion + offset
+    return value * unit_scale(series.unit)
+
+
+def unit_scale(unit: str) -> float:
+    """The factor from an NWB ``unit`` (``"centimeters"``, ``"cm/s"``, ``"degrees"``, ...) to
+    the task's metres and radians: that of its numerator in :data:`UNIT_SCALES`, else 1."""
+    numerator = str(unit).strip().lower().split("/")[0].split(" per ")[0].strip()
+    return UNIT_SCALES.get(numerator.removesuffix("s"), 1.0)

@@ -70,13 +70,14 @@ def convert_units(
 
 
 def unwrap_angles(trial: Mapping[str, np.ndarray], model: TaskModel) -> dict[str, np.ndarray]:
-    """A copy of one trial whose angles, if wrapped into ``[-π, π]`` (e.g. by ``atan2``), are
-    made continuous, as the model's heading is.
+    """A copy of one trial whose angles, if wrapped into ``[-π, π]`` (e.g. by ``atan2``) or
+    ``[0, 2π)`` (a compass's 0–360°), are made continuous, as the model's heading is.
 
-    A jump counts as a wrap only where the angle crosses ±π: both samples within ``[-π, π]``
-    on either side of it, and a change of less than π/2 once the 2π is taken off. Any other
-    jump is left for :func:`~irc_torchrl.data.validate.check_trial` to refuse (degrees read as
-    radians jump anywhere).
+    A jump counts as a wrap only where the angle crosses ±π (both samples within ``[-π, π]``
+    on either side of it) or 0 (both within ``[0, 2π]``), and changes by less than π/2 once
+    the 2π is taken off. Any other jump is left for
+    :func:`~irc_torchrl.data.validate.check_trial` to refuse (degrees read as radians jump
+    anywhere).
     """
     out = dict(trial)
     for name, unit in zip(model.state_names, model.state_units, strict=True):
@@ -86,9 +87,10 @@ def unwrap_angles(trial: Mapping[str, np.ndarray], model: TaskModel) -> dict[str
         before, after = angle[:-1], angle[1:]
         jump = after - before
         turn = jump - 2 * math.pi * np.round(jump / (2 * math.pi))
-        inside = np.maximum(np.abs(before), np.abs(after)) <= math.pi + _WRAP_SLACK
-        crosses = (before * after < 0) & (np.abs(jump) > math.pi)
-        wrap = inside & crosses & (np.abs(turn) < math.pi / 2)
+        low, high = np.minimum(before, after), np.maximum(before, after)
+        signed = (np.maximum(-low, high) <= math.pi + _WRAP_SLACK) & (before * after < 0)
+        positive = (low >= -_WRAP_SLACK) & (high <= 2 * math.pi + _WRAP_SLACK)
+        wrap = (signed | positive) & (np.abs(jump) > math.pi) & (np.abs(turn) < math.pi / 2)
         if wrap.any():
             out[name] = angle + np.concatenate([[0.0], np.cumsum(np.where(wrap, turn - jump, 0.0))])
     return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import warnings
 from collections.abc import Mapping
 
 import numpy as np
@@ -24,8 +25,10 @@ __all__ = [
     "ABSURD",
     "THETA_PREFIX",
     "KINEMATIC_RATIO",
+    "WORLD_RATIO",
     "check_columns",
     "check_kinematics",
+    "check_targets",
     "check_trial",
     "required_columns",
     "split_trials",
@@ -41,6 +44,9 @@ _LIKELY_MISTAKE = {"distance": "cm", "distance/s": "cm/s", "rad/s": "deg/s"}
 #: how far the distance the positions (or angles) cover may differ from what their velocity
 #: column says, as a ratio either way: a unit mistake is 17× (deg) to 1000× (ms)
 KINEMATIC_RATIO = 3.0
+#: how far the velocities the actions drive may follow them otherwise than the world's θ says
+#: before a warning: a rig's gain outside the task's, or a filtered joystick, misleads the fit
+WORLD_RATIO = 1.25
 
 
 def required_columns(model: TaskModel, time_column: str, trial_column: str) -> list[str]:
@@ -67,7 +73,8 @@ def check_columns(
     unknown = [name for name in columns if name not in known]
     for name in required:
         if name not in columns:
-            close = difflib.get_close_matches(name, unknown, n=1, cutoff=0.6)
+            close = [n for n in unknown if n.lower() == name.lower()]  # `X` for `x`
+            close = close or difflib.get_close_matches(name, unknown, n=1, cutoff=0.6)
             hint = f"; column {close[0]!r} looks like a misnamed {name!r}" if close else ""
             raise KeyError(
                 f"{source}: missing column {name!r}{hint}; expected columns {required} "
@@ -106,7 +113,8 @@ def check_columns(
 def split_trials(
     columns: Mapping[str, np.ndarray], source: str, trial_column: str = "trial"
 ) -> list[tuple[int | float, Trial]]:
-    """The rows of each trial, in order of first appearance, as ``(label, {column: values})``."""
+    """The rows of each trial, in order of first appearance, as ``(label, {column: values})``;
+    a trial's rows must lie together (two sessions pooled with the same numbers do not)."""
     ids = np.asarray(columns[trial_column], dtype=np.float64)
     if not np.isfinite(ids).all():
         row = int(np.flatnonzero(~np.isfinite(ids))[0])
@@ -119,6 +127,16 @@ def split_trials(
     for label in labels[np.argsort(first)]:
         rows = ids == label
         name = int(label) if float(label).is_integer() else float(label)
+        at = np.flatnonzero(rows)
+        if at[-1] - at[0] + 1 != len(at):
+            end = int(at[np.flatnonzero(np.diff(at) > 1)[0]])
+            block = f"row {end}" if end == at[0] else f"rows {at[0]}–{end}"
+            raise ValueError(
+                f"{source}: field {trial_column!r}: trial {name} is on {block} and again from "
+                f"row {at[at > end][0]}; expected each trial's rows together (two "
+                "sessions pooled under the same trial numbers? number them apart, e.g. "
+                "20240501.001; rows out of order? sort them by trial and time)"
+            )
         out.append((name, {k: np.asarray(v)[rows] for k, v in columns.items()}))
     return out
 
@@ -239,15 +257,18 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
 
 
 def check_kinematics(held: TensorDictBase, model: TaskModel, source: str) -> None:
-    """Refuse a recording whose positions (angles) do not move as the task's transition says.
+    """Refuse a recording whose positions, angles or velocities do not move as the task's
+    transition says.
 
     Each column is checked alone against the θ space's reach, so a velocity declared in the
-    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes. Here each recorded
-    step's change of the distance (angle) fields of the held trials ``[n, T]`` is regressed on
-    the change the transition predicts from the recorded state and action (under the world's
-    θ): a slope beyond :data:`KINEMATIC_RATIO` either way, many standard errors from 1, is a
-    unit mistake. A recording that hardly moves (its predicted changes all zero) or whose
-    tracker jitters as much as it moves leaves the slope unsure, and is let through.
+    wrong unit (``v`` in m/s declared as cm/s beside positions in cm) passes, and so does an
+    action of the other sign convention. Here each recorded step's change of the distance
+    (angle) fields of the held trials ``[n, T]`` is regressed on the change the transition
+    predicts from the recorded state and action (under the world's θ): a slope beyond
+    :data:`KINEMATIC_RATIO` either way, many standard errors from 1, is a unit mistake. A
+    recording that hardly moves (its predicted changes all zero) or whose tracker jitters as
+    much as it moves leaves the slope unsure, and is let through. Velocities are checked
+    against the actions driving them (:func:`_check_action_driven`).
     """
     stepped = held["mask"][:, 1:]  # a recorded step and the recorded one after it
     state = held["state"].double()
@@ -255,22 +276,15 @@ def check_kinematics(held: TensorDictBase, model: TaskModel, source: str) -> Non
     action = held["action"][:, :-1][stepped]
     action = action if isinstance(model.action_spec, Categorical) else action.double()
     world = held["task_theta"].double()[:, :-1][stepped]
-    predicted = (model.transition(before, action, world) - before).numpy()
-    recorded = (after - before).numpy()
+    predicted = model.transition(before, action, world)
     names = model.state_names
     units = dict(zip(names, model.state_units, strict=True))
     for kind in ("rad", "distance"):  # a heading's mistake also bends the predicted path
         columns = [i for i, n in enumerate(names) if units[n] == kind]
-        if not columns:
+        fit = _slope(predicted - before, after - before, columns)
+        if fit is None or _about_one(*fit, KINEMATIC_RATIO):
             continue
-        x, y = predicted[:, columns].reshape(-1), recorded[:, columns].reshape(-1)
-        spread = float(x @ x)
-        if spread == 0 or len(x) < 3:
-            continue
-        slope = float(x @ y) / spread
-        error = math.sqrt(float(((y - slope * x) ** 2).sum()) / (len(x) - 1) / spread)
-        if 1 / KINEMATIC_RATIO <= slope <= KINEMATIC_RATIO or abs(slope - 1) < 5 * error:
-            continue
+        slope, error = fit
         fields = "/".join(repr(names[i]) for i in columns)
         drivers = [n for n in names if units[n] == f"{kind}/s"]
         cause = f"{'/'.join(map(repr, drivers))}" if drivers else "the actions and the world's θ"
@@ -286,3 +300,88 @@ def check_kinematics(held: TensorDictBase, model: TaskModel, source: str) -> Non
             f"expected about 1: are {fields} and {cause} in the units declared? "
             f"(units.<column>=... on the command line){convention}"
         )
+    if not isinstance(model.action_spec, Categorical):
+        _check_action_driven(model, before, action, world, after - predicted, source)
+
+
+def _check_action_driven(
+    model: TaskModel,
+    before: torch.Tensor,
+    action: torch.Tensor,
+    world: torch.Tensor,
+    residual: torch.Tensor,
+    source: str,
+) -> None:
+    """Refuse velocities that follow the continuous actions with the other sign or at a gain
+    beyond :data:`KINEMATIC_RATIO`, and warn beyond :data:`WORLD_RATIO`.
+
+    What the actions add to each next state (the transition's from the action against a zero
+    action) is regressed on what the recording adds: the slope is the rig's gain over the
+    world θ's. A flipped joystick convention (-1) read as the task's, or a rig faster than the
+    θ space's world, passed every other check and gave a converged, confident, wrong θ̂.
+    """
+    driven = model.transition(before, action, world) - model.transition(
+        before, torch.zeros_like(action), world
+    )
+    names = model.state_names
+    for kind in ("distance/s", "rad/s"):
+        columns = [i for i, u in enumerate(model.state_units) if u == kind]
+        fit = _slope(driven, driven + residual, columns)
+        if fit is None or _about_one(*fit, WORLD_RATIO):
+            continue
+        slope, error = fit
+        fields = "/".join(repr(names[i]) for i in columns)
+        message = (
+            f"{source}: field(s) {fields}: follow the actions {slope:.3g}× as strongly as the "
+            f"task's transition predicts under the world's θ (a slope of ±{error:.2g} over the "
+            f"recording); expected about 1: are {fields} in the units declared "
+            f"(units.<column>=...), the actions {'/'.join(map(repr, model.action_names))} of "
+            "the task's signs, and the world's θ the rig's (theta.<name> columns)?"
+        )
+        if _about_one(slope, error, KINEMATIC_RATIO):
+            warnings.warn(message, stacklevel=3)
+        else:
+            raise ValueError(message)
+
+
+def check_targets(held: TensorDictBase, model: TaskModel, source: str) -> None:
+    """Refuse targets lying more than :data:`ABSURD` times farther from their trial's start
+    than the task ever puts one (its ``initial_state`` over the θ prior): a unit mistake.
+
+    Checked where the target is a position (as many components as the state's distance
+    fields); the targets' unit is declared apart from the positions', so targets in cm beside
+    positions in m passed every other check and gave a converged, wrong θ̂.
+    """
+    positions = [i for i, unit in enumerate(model.state_units) if unit == "distance"]
+    if len(positions) != model.target_dim:
+        return
+    theta = model.theta_space.sample((256,), generator=torch.Generator().manual_seed(0))
+    state, target = model.initial_state(theta, torch.Generator().manual_seed(0))
+    reach = float((target - state[..., positions]).norm(dim=-1).max())
+    offset = (held["target"][:, 0].double() - held["state"][:, 0, positions].double()).norm(dim=-1)
+    worst = int(offset.argmax())
+    if offset[worst] > ABSURD * reach:
+        names = "/".join(map(repr, model.target_names))
+        label = held["trial"][worst, 0].item() if "trial" in held.keys() else worst
+        raise ValueError(
+            f"{source}: trial {label}, field(s) {names}: {offset[worst]:.6g} from the trial's "
+            f"first position; expected within {ABSURD:g}× the task's farthest target "
+            f"({reach:.3g}). A unit mistake? Declare it: units.{model.target_names[0]}=cm "
+            "(irc fit), or similar, for each target column"
+        )
+
+
+def _slope(x: torch.Tensor, y: torch.Tensor, columns: list[int]) -> tuple[float, float] | None:
+    """The least-squares slope through 0 of ``y`` on ``x`` over ``columns``, and its standard
+    error; ``None`` where ``x`` does not vary (nothing to read a slope from)."""
+    x, y = x[:, columns].reshape(-1), y[:, columns].reshape(-1)
+    spread = float(x @ x)
+    if spread == 0 or len(x) < 3:
+        return None
+    slope = float(x @ y) / spread
+    return slope, math.sqrt(float(((y - slope * x) ** 2).sum()) / (len(x) - 1) / spread)
+
+
+def _about_one(slope: float, error: float, ratio: float) -> bool:
+    """Whether a slope lies within ``ratio`` of 1 either way, or within 5 standard errors."""
+    return 1 / ratio <= slope <= ratio or abs(slope - 1) < 5 * error
