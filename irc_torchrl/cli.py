@@ -592,7 +592,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # key=value settings may also follow options (`irc fit a.csv --out r max_iter=60`), and
     # recordings too (`irc fit max_iter=60 --out r a.csv`: argparse took the setting as FILE)
     takes_settings, takes_files = hasattr(args, "overrides"), hasattr(args, "files")
-    recordings = [i for i in extra if takes_files and Path(i).exists()]
+    recordings = [i for i in extra if takes_files and _recording(i)]
     stray = [
         item
         for item in extra
@@ -615,6 +615,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     finally:
         warnings.formatwarning = formatwarning
+
+
+def _recording(item: str) -> bool:
+    """Whether a command-line item names a recording: a path that exists, or one with a
+    recording's suffix (read_trials then says it is missing)."""
+    from irc_torchrl.data.io import SUFFIXES
+
+    return Path(item).exists() or Path(item).suffix in SUFFIXES
 
 
 def _format_warning(command: str, message: Warning | str, *args: Any, **kwargs: Any) -> str:

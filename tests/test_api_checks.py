@@ -483,3 +483,18 @@ def test_unseeded_envs_draw_their_own_worlds_and_torch_manual_seed_repeats_them(
     assert not torch.equal(first["target"], second["target"])
     assert torch.equal(first["theta"], again["theta"])
     assert torch.equal(first["target"], again["target"])
+
+
+def test_an_env_moved_to_its_own_device_keeps_its_stream():
+    """``env.to`` makes a new generator only when the device changes: a move to where the env
+    already draws (here the CPU, from no device named) leaves its seeded draws as they were."""
+
+    def rollout(move: bool):
+        torch.manual_seed(0)  # the random actions
+        env = Firefly2DEnv(batch_size=[3], seed=4, theta=Firefly2DModel().theta_space.default())
+        return (env.to("cpu") if move else env).rollout(6, break_when_any_done=False)
+
+    with torch.random.fork_rng():
+        moved, kept = rollout(True), rollout(False)
+    assert torch.equal(moved["next", "state"], kept["next", "state"])
+    assert torch.equal(moved["target"], kept["target"])

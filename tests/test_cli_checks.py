@@ -313,8 +313,11 @@ def test_the_demo_summary_line_lists_the_ratios_and_every_timing():
     assert last == "DP ratio 0.9877 (min per θ 0.912); train_s 1.0, simulate_s 2.0, fit_s 3.5"
 
 
-def test_a_recording_after_the_options_is_a_recording(tmp_path, monkeypatch):
+def test_a_recording_after_the_options_is_a_recording(tmp_path, monkeypatch, capsys):
     """argparse gave the setting before the options to FILE and refused the file after them."""
+    missing = str(tmp_path / "missing.csv")  # named as missing, not as a stray argument
+    assert main(["fit", "max_iter=3", "--out", str(tmp_path / "out"), missing]) == 2
+    assert f"error: {missing}: no such file or folder" in capsys.readouterr().err
     recording = tmp_path / "a.csv"
     recording.write_text("")
     argv = ["fit", "max_iter=3", "--out", str(tmp_path / "out"), str(recording), "n_starts=2"]

@@ -14,7 +14,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from irc_torchrl.algorithms.simulate import simulate_agents
+from irc_torchrl.algorithms.ensemble import load_ensemble_policy
+from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.data.io import read_trials, trials_to_columns, write_trials
 from irc_torchrl.envs import Firefly1DModel, Firefly2DModel
 
@@ -220,10 +221,18 @@ def test_a_gap_in_a_trial_is_refused_unless_resampled(tmp_path, model2d, trials2
         read = read_trials(path, model2d)
     assert read["mask"].sum() > keep.sum()
     assert [str(w.message).split(": ", 1)[1] for w in caught if "across" in str(w.message)] == [
-        f"trial {longest}: a gap of 0.6 s from 0.2 s was interpolated across (5 model steps, "
+        f"trial {longest}: a gap of 0.6 s from 0.2 s was interpolated across (1 model step, "
         "actions included, made up; the longest such gap of the recording): cut the trial "
         "there if the agent was not tracked"
     ]
+    # one frame missing from a recording twice the model's rate makes up no model step
+    fine = _oversampled(columns)
+    keep = np.ones(len(fine["trial"]), dtype=bool)
+    keep[np.flatnonzero(fine["trial"] == longest)[3]] = False
+    _write_raw({k: v[keep] for k, v in fine.items()}, path)
+    with pytest.warns(UserWarning, match="resampled every trial") as caught:
+        read_trials(path, model2d)
+    assert not [w for w in caught if "interpolated across" in str(w.message)]
 
 
 @pytest.mark.parametrize(
@@ -854,6 +863,41 @@ def test_an_action_of_the_other_sign_is_refused_and_a_faster_rig_warned(
     _write_raw(columns, tmp_path / "fast.csv")
     with pytest.warns(UserWarning, match=r"'v': follow the actions 1\.5\d× as strongly .* the "):
         read_trials(tmp_path / "fast.csv", model2d)
+
+
+@pytest.fixture(scope="module")
+def agent2d(model2d):
+    """The shipped policy's agent, noisy and lapsing, 20 trials: smooth controls, long trials."""
+    actor, _, _ = load_ensemble_policy("firefly2d")
+    theta = model2d.theta_space.default().unsqueeze(0)
+    agent = motor_noise_policy(actor, model2d.action_spec, 0.3, lapse=0.1)
+    return simulate_agents(model2d, agent, theta, 20, seed=0)[0]
+
+
+def test_actions_logged_a_sample_late_are_named_so(tmp_path, model2d, agent2d):
+    """Each row's action the one that set its own velocity (a logger's other convention) was
+    refused as a unit, sign or world mistake."""
+    columns = trials_to_columns(agent2d, model2d)
+    for key in ("a_v", "a_w"):
+        late = columns[key].astype(np.float64).copy()
+        for label in np.unique(columns["trial"]):
+            rows = np.flatnonzero(columns["trial"] == label)
+            late[rows[1:]] = late[rows[:-1]]
+        columns[key] = late
+    _write_raw(columns, tmp_path / "late.csv")
+    message = r"'w': follow the actions 0\.3\d*× .* the row after by 0\.9\d*×: each row holds"
+    with pytest.raises(ValueError, match=message):
+        read_trials(tmp_path / "late.csv", model2d)
+
+
+def test_recordings_of_the_task_read_without_a_warning(tmp_path, model2d, trials2d, agent2d):
+    """The new checks stay quiet on what the task makes: random controls, and the shipped
+    policy's agent with motor noise and lapses."""
+    for name, trials in (("random", trials2d), ("policy", agent2d)):
+        path = write_trials(trials, tmp_path / f"{name}.csv", model2d)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert read_trials(path, model2d)["mask"].any()
 
 
 @pytest.mark.parametrize("task", ["2d", "1d"])

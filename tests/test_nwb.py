@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -42,12 +44,14 @@ def _lab_nwb(
     offset=0.0,
     cm_unit=False,
     rate=False,
+    late=(),
 ):
     """An NWB file laid out as the schema says, written the way a lab's rig might: positions
     in cm declared by NWB's own ``conversion`` (from an origin ``offset`` m away) or by their
     ``unit`` (``cm_unit``), samples through the gaps between trials, a series not exported,
-    one a sample short on its own clock, or every series sampled at a rate (its starting time
-    and rate, no timestamps) with an outcome in words in the trials table."""
+    one a sample short on its own clock or as long but half a sample late (``late``), or every
+    series sampled at a rate (its starting time and rate, no timestamps) with an outcome in
+    words in the trials table."""
     import datetime
     import uuid
 
@@ -97,6 +101,8 @@ def _lab_nwb(
         series = [
             TimeSeries(name=n, data=data[n][:-1], timestamps=stamps[:-1], unit="SI")
             if n in short
+            else TimeSeries(name=n, data=data[n], timestamps=stamps + 0.05, unit="SI")
+            if n in late
             else TimeSeries(name=n, data=data[n], unit="SI", **on_clock)
             for n in names
             if n not in without
@@ -139,7 +145,7 @@ def test_a_rigs_nwb_file_is_read_as_nwb_means_it(tmp_path):
     with pytest.raises(KeyError, match="missing the series 'v'; expected it in 'state'"):
         read_trials(tmp_path / "no_v.nwb", model)
     _lab_nwb(tmp_path / "short.nwb", columns, short=("a_v",))
-    with pytest.raises(ValueError, match=r"series 'a_v' has \d+ values but 'position' has \d+"):
+    with pytest.raises(ValueError, match=r"series 'a_v' has (\d+) values at \1 times, not at the"):
         read_trials(tmp_path / "short.nwb", model)
 
 
@@ -156,3 +162,51 @@ def test_an_nwb_series_reads_as_data_times_conversion_plus_offset(tmp_path):
     back = read_trials(tmp_path / "offset.nwb", model)
     torch.testing.assert_close(back["state"], expected["state"], rtol=0, atol=1e-6)
     assert torch.equal(back["mask"], expected["mask"])
+
+
+@pytest.mark.parametrize(
+    "unit, kind, factor",
+    [
+        ("metres", "distance", 1.0),
+        ("centimeters", "distance", 0.01),
+        ("mm", "distance", 0.001),
+        ("cm s^-1", "distance/s", 0.01),
+        ("centimeters per second", "distance/s", 0.01),
+        ("°", "rad", math.pi / 180),
+        ("degrees/second", "rad/s", math.pi / 180),
+        ("rad/s", "rad/s", 1.0),
+        ("SI", "rad/s", 1.0),
+        ("distance/s", "distance/s", 1.0),
+    ],
+)
+def test_an_nwb_unit_is_read_however_spelled(unit, kind, factor):
+    from irc_torchrl.data.nwb import unit_scale
+
+    assert unit_scale(unit, kind, "f.nwb: series 'v'") == pytest.approx(factor, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "unit, kind",
+    [("cm/s", "rad/s"), ("cm", "rad"), ("pixels", "distance"), ("cm", "distance/s")],
+)
+def test_an_nwb_unit_of_another_kind_or_unknown_is_refused(unit, kind):
+    """Read as the task's own they gave a file 100× off, or an angle in distance units."""
+    from irc_torchrl.data.nwb import unit_scale
+
+    with pytest.raises(ValueError, match=rf"f\.nwb: series 'v': unit '{unit}'; expected a {kind}"):
+        unit_scale(unit, kind, "f.nwb: series 'v'")
+
+
+def test_units_for_an_nwb_file_and_a_series_off_the_clock_are_refused(tmp_path):
+    """NWB's series carry their unit: a units= on top converted them twice; a series on its own
+    clock of the same length was aligned to the positions by index."""
+    from irc_torchrl.data.io import trials_to_columns
+
+    model = Firefly2DModel()
+    columns = trials_to_columns(_numbered(model, [3.0, 5.0]), model)
+    _lab_nwb(tmp_path / "cm.nwb", columns, cm_unit=True)
+    with pytest.raises(ValueError, match=r"cm\.nwb: units: an NWB series carries its own unit"):
+        read_trials(tmp_path / "cm.nwb", model, units={"x": "cm"})
+    _lab_nwb(tmp_path / "late.nwb", columns, late=("a_w",))
+    with pytest.raises(ValueError, match=r"'a_w' has (\d+) values at \1 times, not at the \1 "):
+        read_trials(tmp_path / "late.nwb", model)

@@ -44,6 +44,8 @@ def float32_default() -> Iterator[None]:
 
     TorchRL's exploration modules draw their noise in the default dtype: under a float64
     default a seed would give other draws (and float64 actions the float32 networks refuse).
+    The default dtype is the process's, as ``torch.set_default_dtype`` sets it: threads
+    running torch beside a run see float32 too.
     """
     previous = torch.get_default_dtype()
     torch.set_default_dtype(torch.float32)

@@ -62,7 +62,8 @@ def motor_noise_policy(
     is TorchRL's :class:`~torchrl.modules.AdditiveGaussianModule` at a constant scale.
     ``motor_noise`` is one standard deviation, or a tensor of them broadcasting against the
     action (e.g. ``[n_agents, 1, da]`` for :func:`simulate_agents`: each agent's fitted noise);
-    ``lapse`` likewise (``[n_agents, 1, 1]``).
+    ``lapse`` likewise (``[n_agents, 1, 1]``). :func:`simulate_agents` takes one per agent,
+    not per trial: an agent the inverse objective describes has one noise and one lapse rate.
     """
     # on the CPU, as TorchRL's module draws its noise there before moving it to the action
     std = torch.as_tensor(motor_noise, dtype=torch.float32, device="cpu")

@@ -40,7 +40,17 @@ from irc_torchrl.data.validate import (
 )
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["load_memmap", "nwb_module", "read_trials", "write_trials", "trials_to_columns"]
+__all__ = [
+    "SUFFIXES",
+    "load_memmap",
+    "nwb_module",
+    "read_trials",
+    "write_trials",
+    "trials_to_columns",
+]
+
+#: the file formats a recording may have (else a TensorDict memmap folder)
+SUFFIXES = (".npz", ".csv", ".nwb")
 
 #: the median time step may differ from the model's by this fraction before resampling
 RESAMPLE_TOLERANCE = 0.01
@@ -85,6 +95,11 @@ def read_trials(
     if not path.exists():
         raise FileNotFoundError(f"{source}: no such file or folder")
     reader = _reader(path)
+    if units and reader is _read_nwb:
+        raise ValueError(
+            f"{source}: units: an NWB series carries its own unit (its unit and conversion), "
+            f"read as such; expected no units= for an NWB file, got {dict(units)}"
+        )
     columns = reader(path, model, time_column, trial_column)
     check_columns(columns, model, source, time_column, trial_column)
     # the schema's other columns (eye position, events, ...) are the user's business
@@ -172,17 +187,17 @@ Writer = Callable[[Columns, Path, TaskModel], None]
 def _reader(path: Path) -> Reader:
     if path.is_dir():
         return _read_memmap
-    readers = {".npz": _read_npz, ".csv": _read_csv, ".nwb": _read_nwb}
+    readers = dict(zip(SUFFIXES, (_read_npz, _read_csv, _read_nwb), strict=True))
     if path.suffix not in readers:
         raise ValueError(
-            f"{path}: unknown format {path.suffix!r}; expected .npz, .csv, .nwb "
+            f"{path}: unknown format {path.suffix!r}; expected {', '.join(SUFFIXES)} "
             "or a TensorDict memmap folder"
         )
     return readers[path.suffix]
 
 
 def _writer(path: Path) -> Writer:
-    writers = {".npz": _write_npz, ".csv": _write_csv, ".nwb": _write_nwb}
+    writers = dict(zip(SUFFIXES, (_write_npz, _write_csv, _write_nwb), strict=True))
     if path.suffix not in writers:
         raise ValueError(
             f"{path}: unknown format {path.suffix!r}; expected .npz, .csv, .nwb "
@@ -419,10 +434,9 @@ def _on_model_grid(
                     f"expected at least one model step ({model.dt} s) to resample"
                 )
             previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
-            if gaps.size:
-                i = int(gaps[np.argmax(np.diff(time)[gaps])])
-                if time[i + 1] - time[i] > longest[0]:
-                    inside = int(((grid > time[i]) & (grid < time[i + 1])).sum())
+            for i in gaps:  # the longest gap holding model steps no sample was near
+                inside = int(((grid > time[i] + step) & (grid < time[i + 1] - step)).sum())
+                if inside and time[i + 1] - time[i] > longest[0]:
                     longest = (float(time[i + 1] - time[i]), label, float(recorded[i]), inside)
             trial = {
                 name: values[previous] if name in discrete else np.interp(grid, time, values)
@@ -445,9 +459,9 @@ def _on_model_grid(
     if inside:
         warnings.warn(
             f"{source}: trial {label}: a gap of {seconds:.6g} s from {start:.6g} s was "
-            f"interpolated across ({inside} model steps, actions included, made up; the "
-            "longest such gap of the recording): cut the trial there if the agent was not "
-            "tracked",
+            f"interpolated across ({inside} model step{'s' * (inside > 1)}, actions included, "
+            "made up; the longest such gap of the recording): cut the trial there if the agent "
+            "was not tracked",
             stacklevel=3,
         )
     return out

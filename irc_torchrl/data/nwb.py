@@ -11,7 +11,7 @@ and its task θ (``theta.<name>`` columns). Trials follow one another with a one
 from __future__ import annotations
 
 import datetime
-import math
+import re
 import uuid
 from pathlib import Path
 
@@ -19,23 +19,27 @@ import numpy as np
 from pynwb import NWBHDF5IO, NWBFile, TimeSeries
 from pynwb.behavior import BehavioralTimeSeries, CompassDirection, Position, SpatialSeries
 
+from irc_torchrl.data.units import UNITS
 from irc_torchrl.data.validate import THETA_PREFIX
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["UNIT_SCALES", "read_nwb", "unit_scale", "write_nwb"]
+__all__ = ["NEUTRAL_UNITS", "read_nwb", "unit_scale", "write_nwb"]
 
 #: seconds between the end of one trial and the start of the next on the session clock
 TRIAL_GAP = 1.0
 
 Columns = dict[str, np.ndarray]
-#: the factors to metres and radians of the units an NWB series may name, singular
-UNIT_SCALES = {
-    **dict.fromkeys(("m", "meter", "metre"), 1.0),
-    **dict.fromkeys(("cm", "centimeter", "centimetre"), 0.01),
-    **dict.fromkeys(("mm", "millimeter", "millimetre"), 0.001),
-    **dict.fromkeys(("rad", "radian"), 1.0),
-    **dict.fromkeys(("deg", "degree"), math.pi / 180),
-}
+#: NWB units that name no scale: read in the task's own units
+NEUTRAL_UNITS = {"", "si", "n.a.", "a.u.", "dimensionless", "unknown", "none"}
+#: spellings of the units of :data:`~irc_torchrl.data.units.UNITS`, made their short forms
+_SPELLINGS = [
+    (r"\s*(per\s+second|/\s*s(ec(ond)?)?|[\s.]*s\^?-1|[\s.]*s⁻¹)$", "/s"),
+    (r"^(centi)(meter|metre)s?", "cm"),
+    (r"^(milli)(meter|metre)s?", "mm"),
+    (r"^(meter|metre)s?", "m"),
+    (r"^radians?", "rad"),
+    (r"^(degrees?|°)", "deg"),
+]
 
 
 def _layout(model: TaskModel) -> tuple[list[str], list[str], list[str]]:
@@ -146,9 +150,10 @@ def read_nwb(
                 "Position 'position' SpatialSeries (see docs/trajectory_schema.md)"
             ) from None
         stamps = np.asarray(pos.get_timestamps(), dtype=np.float64)  # or starting time and rate
-        data = _values(pos).reshape(len(stamps), -1)
+        data = _values(pos, "distance", path).reshape(len(stamps), -1)
         position, angles, others = _layout(model)
         table: Columns = {n: data[:, i] for i, n in enumerate(position)}
+        kinds = dict(zip(model.state_names, model.state_units, strict=True))
         containers = {
             **{n: "CompassDirection" for n in angles},
             **{n: "state" for n in others},
@@ -162,11 +167,14 @@ def read_nwb(
                     f"{path}: missing the series {name!r}; expected it in {container!r} of "
                     "processing module 'behavior' (see docs/trajectory_schema.md)"
                 ) from None
-            table[name] = _values(series)
-            if len(table[name]) != len(stamps):
+            table[name] = _values(series, kinds.get(name), path)
+            clock = np.asarray(series.get_timestamps(), dtype=np.float64)
+            same = len(table[name]) == len(clock) == len(stamps)
+            if not (same and np.allclose(clock, stamps, rtol=0, atol=1e-9)):
                 raise ValueError(
-                    f"{path}: series {name!r} has {len(table[name])} values but 'position' "
-                    f"has {len(stamps)} timestamps; expected every series on one clock"
+                    f"{path}: series {name!r} has {len(table[name])} values at {len(clock)} "
+                    f"times, not at the {len(stamps)} of 'position' (from {stamps[0]:.6g} s); "
+                    "expected every series on one clock"
                 )
         if nwb.trials is None:
             raise KeyError(f"{path}: missing the trials table; expected one row per trial")
@@ -196,17 +204,31 @@ def read_nwb(
     return {name: np.asarray(values)[inside] for name, values in columns.items()}
 
 
-def _values(series: TimeSeries) -> np.ndarray:
-    """A series' data in the task's units: NWB stores ``data × conversion + offset`` in the
-    series' ``unit``, which is scaled from centimetres, millimetres or degrees where it names
-    them (:data:`UNIT_SCALES`); any other unit is read as the task's."""
+def _values(series: TimeSeries, kind: str | None, path: Path) -> np.ndarray:
+    """A series' data in the task's units (``kind``: the field's, ``None`` for a control):
+    NWB stores ``data × conversion + offset`` in the series' ``unit``, converted here."""
     offset = getattr(series, "offset", 0.0) or 0.0
     value = np.asarray(series.data[:], dtype=np.float64) * series.conversion + offset
-    return value * unit_scale(series.unit)
+    if kind is None:  # a control: dimensionless
+        return value
+    return value * unit_scale(series.unit, kind, f"{path}: series {series.name!r}")
 
 
-def unit_scale(unit: str) -> float:
-    """The factor from an NWB ``unit`` (``"centimeters"``, ``"cm/s"``, ``"degrees"``, ...) to
-    the task's metres and radians: that of its numerator in :data:`UNIT_SCALES`, else 1."""
-    numerator = str(unit).strip().lower().split("/")[0].split(" per ")[0].strip()
-    return UNIT_SCALES.get(numerator.removesuffix("s"), 1.0)
+def unit_scale(unit: str, kind: str, where: str) -> float:
+    """The factor from an NWB ``unit`` to the task's unit ``kind`` (``"distance"``, ``"rad/s"``,
+    ...): a unit of :data:`~irc_torchrl.data.units.UNITS` however spelled (``"centimeters"``,
+    ``"cm s^-1"``, ``"°"``), or 1 for the task's own or none named (``"SI"``); any other
+    unit is refused rather than read as the task's."""
+    spelled = str(unit).strip().lower()
+    if spelled in NEUTRAL_UNITS or spelled == kind:
+        return 1.0
+    for pattern, short in _SPELLINGS:
+        spelled = re.sub(pattern, short, spelled)
+    table = UNITS.get(kind, {})  # a task of the user's may have kinds of its own
+    if spelled not in table:
+        known = f"one of {', '.join(table)} (any spelling), or " if table else ""
+        raise ValueError(
+            f"{where}: unit {unit!r}; expected a {kind} unit: {known}{kind!r} or 'SI' for the "
+            "task's own"
+        )
+    return table[spelled]

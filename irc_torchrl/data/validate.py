@@ -301,45 +301,59 @@ def check_kinematics(held: TensorDictBase, model: TaskModel, source: str) -> Non
             f"(units.<column>=... on the command line){convention}"
         )
     if not isinstance(model.action_spec, Categorical):
-        _check_action_driven(model, before, action, world, after - predicted, source)
+        later = held["action"][:, 1:][stepped].double()  # the action recorded a row later
+        _check_action_driven(model, before, (action, later), world, after, source)
 
 
 def _check_action_driven(
     model: TaskModel,
     before: torch.Tensor,
-    action: torch.Tensor,
+    actions: tuple[torch.Tensor, torch.Tensor],
     world: torch.Tensor,
-    residual: torch.Tensor,
+    after: torch.Tensor,
     source: str,
 ) -> None:
     """Refuse velocities that follow the continuous actions with the other sign or at a gain
     beyond :data:`KINEMATIC_RATIO`, and warn beyond :data:`WORLD_RATIO`.
 
-    What the actions add to each next state (the transition's from the action against a zero
-    action) is regressed on what the recording adds: the slope is the rig's gain over the
+    What the recording adds to each next state beyond the transition's with a zero action is
+    regressed on what the action adds by the transition: the slope is the rig's gain over the
     world θ's. A flipped joystick convention (-1) read as the task's, or a rig faster than the
     θ space's world, passed every other check and gave a converged, confident, wrong θ̂.
+    ``actions`` holds each step's action and the one recorded a row later: where the slope
+    is about 1 with the later one, each row holds the action that set its own velocity, one
+    sample late for the task (whose action at a step sets the next step's velocity).
     """
-    driven = model.transition(before, action, world) - model.transition(
-        before, torch.zeros_like(action), world
-    )
+    action, later = actions
+    idle = model.transition(before, torch.zeros_like(action), world)
     names = model.state_names
     for kind in ("distance/s", "rad/s"):
         columns = [i for i, u in enumerate(model.state_units) if u == kind]
-        fit = _slope(driven, driven + residual, columns)
+        fit = _slope(model.transition(before, action, world) - idle, after - idle, columns)
         if fit is None or _about_one(*fit, WORLD_RATIO):
             continue
         slope, error = fit
         fields = "/".join(repr(names[i]) for i in columns)
+        shifted = _slope(model.transition(before, later, world) - idle, after - idle, columns)
+        if shifted is not None and _about_one(*shifted, WORLD_RATIO):
+            cause = (
+                f"they follow the action of the row after by {shifted[0]:.3g}×: each row holds "
+                "the action that set its own velocity, where the task's action at a step sets "
+                "the next step's; shift the actions one sample earlier"
+            )
+        else:
+            cause = (
+                f"are {fields} in the units declared (units.<column>=...), the actions "
+                f"{'/'.join(map(repr, model.action_names))} of the task's signs and times, and "
+                "the world's θ the rig's (theta.<name> columns)?"
+            )
         message = (
             f"{source}: field(s) {fields}: follow the actions {slope:.3g}× as strongly as the "
             f"task's transition predicts under the world's θ (a slope of ±{error:.2g} over the "
-            f"recording); expected about 1: are {fields} in the units declared "
-            f"(units.<column>=...), the actions {'/'.join(map(repr, model.action_names))} of "
-            "the task's signs, and the world's θ the rig's (theta.<name> columns)?"
+            f"recording); expected about 1: {cause}"
         )
         if _about_one(slope, error, KINEMATIC_RATIO):
-            warnings.warn(message, stacklevel=3)
+            warnings.warn(message, stacklevel=4)
         else:
             raise ValueError(message)
 
@@ -358,6 +372,8 @@ def check_targets(held: TensorDictBase, model: TaskModel, source: str) -> None:
     theta = model.theta_space.sample((256,), generator=torch.Generator().manual_seed(0))
     state, target = model.initial_state(theta, torch.Generator().manual_seed(0))
     reach = float((target - state[..., positions]).norm(dim=-1).max())
+    if reach == 0:  # the task puts its targets at the start: nothing to scale a mistake by
+        return
     offset = (held["target"][:, 0].double() - held["state"][:, 0, positions].double()).norm(dim=-1)
     worst = int(offset.argmax())
     if offset[worst] > ABSURD * reach:

@@ -50,7 +50,9 @@ class Firefly2DGymEnv(gym.Env):
         space = self.model.theta_space
         self._theta = None if theta is None else self._as_theta(theta, "theta")
         self._task_theta = None if task_theta is None else self._as_theta(task_theta, "task_theta")
-        self.env = TransformedEnv(Firefly2DEnv(model=self.model), EKFBelief(self.model))
+        # seeded at the first reset (gymnasium's way), not from torch's global generator
+        base = Firefly2DEnv(model=self.model, seed=0)
+        self.env = TransformedEnv(base, EKFBelief(self.model))
         self.features = BeliefFeatures(self.model)
         dim = self.model.belief_feature_dim + space.dim
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(dim,), dtype=np.float32)

@@ -64,9 +64,7 @@ class TaskEnv(EnvBase):
         )
         self._make_specs()
         self.rng = torch.Generator(device=self.device if self.device is not None else "cpu")
-        if seed is None:  # drawn from torch's global generator: torch.manual_seed sets it
-            seed = int(torch.randint(2**62, (), dtype=torch.int64))
-        self.set_seed(check_seed("seed", seed))
+        self.set_seed(None if seed is None else check_seed("seed", seed))
 
     def _check_theta(self, theta: torch.Tensor, field: str) -> torch.Tensor:
         theta = torch.as_tensor(theta, dtype=torch.float32, device=self.device)
@@ -115,7 +113,9 @@ class TaskEnv(EnvBase):
         return self
 
     def _set_seed(self, seed: int | None) -> None:
-        self.rng.manual_seed(int(seed) if seed is not None else 0)
+        if seed is None:  # drawn from torch's global generator: torch.manual_seed sets it
+            seed = int(torch.randint(2**62, (), dtype=torch.int64))
+        self.rng.manual_seed(int(seed))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         space, batch = self.model.theta_space, self.batch_size
