@@ -302,13 +302,14 @@ def check_kinematics(held: TensorDictBase, model: TaskModel, source: str) -> Non
         )
     if not isinstance(model.action_spec, Categorical):
         later = held["action"][:, 1:][stepped].double()  # the action recorded a row later
-        _check_action_driven(model, before, (action, later), world, after, source)
+        _check_action_driven(model, before, predicted, later, world, after, source)
 
 
 def _check_action_driven(
     model: TaskModel,
     before: torch.Tensor,
-    actions: tuple[torch.Tensor, torch.Tensor],
+    predicted: torch.Tensor,
+    later: torch.Tensor,
     world: torch.Tensor,
     after: torch.Tensor,
     source: str,
@@ -320,16 +321,16 @@ def _check_action_driven(
     regressed on what the action adds by the transition: the slope is the rig's gain over the
     world θ's. A flipped joystick convention (-1) read as the task's, or a rig faster than the
     θ space's world, passed every other check and gave a converged, confident, wrong θ̂.
-    ``actions`` holds each step's action and the one recorded a row later: where the slope
-    is about 1 with the later one, each row holds the action that set its own velocity, one
-    sample late for the task (whose action at a step sets the next step's velocity).
+    ``predicted`` is the transition from each step's action (as :func:`check_kinematics`
+    computed it), ``later`` the action recorded a row later: where the slope is about 1 with
+    that one, each row holds the action that set its own velocity, one sample late for the
+    task (whose action at a step sets the next step's velocity).
     """
-    action, later = actions
-    idle = model.transition(before, torch.zeros_like(action), world)
+    idle = model.transition(before, torch.zeros_like(later), world)
     names = model.state_names
     for kind in ("distance/s", "rad/s"):
         columns = [i for i, u in enumerate(model.state_units) if u == kind]
-        fit = _slope(model.transition(before, action, world) - idle, after - idle, columns)
+        fit = _slope(predicted - idle, after - idle, columns)
         if fit is None or _about_one(*fit, WORLD_RATIO):
             continue
         slope, error = fit

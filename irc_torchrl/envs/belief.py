@@ -139,10 +139,15 @@ class EKFBelief(Transform):
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
-        self._require(tensordict_reset.keys(), "state", "target", self.theta_key)
-        mean, cov = self.model.initial_belief(
-            tensordict_reset["state"], tensordict_reset["target"], tensordict_reset[self.theta_key]
-        )
+        try:
+            mean, cov = self.model.initial_belief(
+                tensordict_reset["state"],
+                tensordict_reset["target"],
+                tensordict_reset[self.theta_key],
+            )
+        except KeyError:  # named only on failure: a reset is on the collector's hot path
+            self._require(tensordict_reset.keys(), "state", "target", self.theta_key)
+            raise
         tensordict_reset.set(BELIEF_MEAN, mean)
         tensordict_reset.set(BELIEF_COV, cov)
         return tensordict_reset
