@@ -1,11 +1,29 @@
-"""Shared fixtures: one thread for torch, and the 1D factorised Q trained once per session."""
+"""Shared fixtures: one thread for torch, and the 1D factorised Q trained once per test run."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+from filelock import FileLock
 
 torch.set_num_threads(1)
+
+
+#: the test files that take longest (about 2-5 min of one core each), run first: xdist hands
+#: files to its workers in collection order (``--no-loadscope-reorder``), so the short ones
+#: fill in at the end and the workers finish together
+SLOW_FIRST = (
+    "test_fit2d.py", "test_own_task.py", "test_stages.py", "test_inverse1d.py",
+    "test_examples.py", "test_cli_fit.py", "test_lapse.py",
+)  # fmt: skip
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The slowest test files first, each file's tests in their own order."""
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -23,8 +41,23 @@ def firefly1d_model():
 
 
 @pytest.fixture(scope="session")
-def trained_q(firefly1d_model):
-    """Algorithm 1 on the 1D task with the default settings, seed 0 (about 20 s on 1 thread)."""
+def trained_q(firefly1d_model, tmp_path_factory):
+    """Algorithm 1 on the 1D task with the default settings, seed 0 (about 40 s on 1 thread),
+    trained by the first xdist worker that asks and read by the others from the run's shared
+    temporary folder."""
     from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 
-    return train_factorised_q(firefly1d_model, QIterationConfig(), seed=0)
+    def train():
+        return train_factorised_q(firefly1d_model, QIterationConfig(), seed=0)
+
+    if "PYTEST_XDIST_WORKER" not in os.environ:  # one process: its temporary folder is its own
+        return train()
+    shared = tmp_path_factory.getbasetemp().parent / "trained_q.pt"  # this run's workers'
+    with FileLock(f"{shared}.lock"):
+        if shared.is_file():  # written whole below, by this run's first worker
+            return torch.load(shared, weights_only=False)
+        q = train()
+        part = shared.with_name(f"{shared.name}.part")
+        torch.save(q, part)
+        part.replace(shared)
+    return q

@@ -398,7 +398,7 @@ def test_the_same_seed_gives_the_same_fit_bit_for_bit(shipped):
     )
     loss = InverseRationalLoss(model, action_model, n_agents=2)
     fits = [
-        fit_theta(loss, trials.select(*RECORDED), n_screen=4, n_starts=1, max_iter=6, seed=seed)
+        fit_theta(loss, trials.select(*RECORDED), n_screen=4, n_starts=1, max_iter=3, seed=seed)
         for seed in (5, 5, 6)
     ]
     same, again, other = fits

@@ -33,7 +33,7 @@ from irc_torchrl.theta import ThetaSpace
 #: a recovery small enough for seconds, with both estimators and two calibration datasets
 TINY = dict(
     n_prior_agents=2, n_mistaken_agents=0, n_trials=10, calibrate=2, threads=1,
-    fit=FitConfig(n_screen=2, n_starts=1, max_iter=5, curvature="bfgs", covariance="sandwich"),
+    fit=FitConfig(n_screen=2, n_starts=1, max_iter=2, curvature="bfgs", covariance="sandwich"),
 )  # fmt: skip
 
 
@@ -383,6 +383,16 @@ def _strip(summary: dict) -> dict:
     return summary
 
 
+@pytest.fixture
+def no_figures(monkeypatch):
+    """Runs that draw no figures: these tests compare the numbers a resumed run writes (the
+    figures of a whole run are test_fit2d's and test_cli_fit's), and drawing them is a fifth
+    of a small run's time."""
+    monkeypatch.setattr(recover2d, "plot_recovery", lambda summary, path, **kwargs: Path(path))
+    monkeypatch.setattr(recover2d, "belief_figures", lambda *args, **kwargs: [])
+    monkeypatch.setattr(recordings, "report_run", lambda folder: [])
+
+
 def _stop_at_call(monkeypatch, module, name: str, n: int) -> list[int]:
     """Count the calls of ``module.name`` from now on, stopping the run at the ``n``-th."""
     work, calls = getattr(module, name), []
@@ -409,7 +419,9 @@ def _count_fits(monkeypatch, module) -> list[str]:
     return methods
 
 
-def test_an_interrupted_recovery_resumes_to_the_uninterrupted_numbers(tmp_path, monkeypatch):
+def test_an_interrupted_recovery_resumes_to_the_uninterrupted_numbers(
+    tmp_path, monkeypatch, no_figures
+):
     """Stopped while simulating its second calibration dataset, a recovery resumed fits only
     that dataset and ends with the summary and trials of one never stopped; rerun with a third
     dataset, it fits only the third."""
@@ -484,13 +496,16 @@ def recorded(tmp_path_factory) -> list[Path]:
 
 
 def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
-    recorded, tmp_path, monkeypatch, capsys
+    recorded, tmp_path, monkeypatch, capsys, no_figures
 ):
     """``irc fit --resume`` after a fit stopped in its second calibration dataset refits only
     that dataset, says what it read, and writes the summary of a fit never stopped."""
     files = [str(p) for p in recorded]
-    settings = ["n_screen=2", "n_starts=1", "max_iter=5", "calibrate=2", "threads=1"]
-    whole = RecordingFitConfig(n_screen=2, n_starts=1, max_iter=5, calibrate=2, threads=1)
+    settings = ["n_screen=2", "n_starts=1", "max_iter=2", "curvature=bfgs", "calibrate=2",
+                "threads=1"]  # fmt: skip
+    whole = RecordingFitConfig(
+        n_screen=2, n_starts=1, max_iter=2, curvature="bfgs", calibrate=2, threads=1
+    )
     recordings.fit_recordings(files, tmp_path / "whole", whole, progress=False)
     out = str(tmp_path / "run")
     with monkeypatch.context() as patch:
@@ -510,7 +525,9 @@ def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
     assert _strip(summary) == _strip(reference)
 
 
-def test_a_recovery_stopped_in_its_particle_checks_resumes_with_those_done(tmp_path, monkeypatch):
+def test_a_recovery_stopped_in_its_particle_checks_resumes_with_those_done(
+    tmp_path, monkeypatch, no_figures
+):
     """Killed in its third particle check (marginal's at θ̂), a recovery resumed reads both
     fits and map's two checks (with their times) and runs only marginal's, to the numbers of
     a run never stopped."""
@@ -532,10 +549,14 @@ def test_a_recovery_stopped_in_its_particle_checks_resumes_with_those_done(tmp_p
     assert resumed["timings"]["particle_check_map_s"] == seconds
 
 
-def test_a_fit_of_recordings_resumed_reads_its_particle_checks(recorded, tmp_path, monkeypatch):
+def test_a_fit_of_recordings_resumed_reads_its_particle_checks(
+    recorded, tmp_path, monkeypatch, no_figures
+):
     """Rerun with ``--resume``, a finished fit with particle checks reads every fit and check;
     with another particle count it runs only the checks."""
-    config = RecordingFitConfig(n_screen=2, n_starts=1, max_iter=5, particles=16, threads=1)
+    config = RecordingFitConfig(
+        n_screen=2, n_starts=1, max_iter=2, curvature="bfgs", particles=16, threads=1
+    )
     files = [str(p) for p in recorded]
     whole = recordings.fit_recordings(files, tmp_path, config, progress=False)
     fits = _count_fits(monkeypatch, recordings)
