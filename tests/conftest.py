@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
 from filelock import FileLock
+from xdist import is_xdist_worker
 
 torch.set_num_threads(1)
 
 
-#: the test files that take longest (about 2-5 min of one core each), run first: xdist hands
+#: the test files that take longest (about 1-5 min of one core each), run first: xdist hands
 #: files to its workers in collection order (``--no-loadscope-reorder``), so the short ones
 #: fill in at the end and the workers finish together
 SLOW_FIRST = (
@@ -41,18 +40,19 @@ def firefly1d_model():
 
 
 @pytest.fixture(scope="session")
-def trained_q(firefly1d_model, tmp_path_factory):
+def trained_q(firefly1d_model, tmp_path_factory, request, testrun_uid):
     """Algorithm 1 on the 1D task with the default settings, seed 0 (about 40 s on 1 thread),
-    trained by the first xdist worker that asks and read by the others from the run's shared
-    temporary folder."""
+    trained by the first xdist worker that asks and read by the others from a file named by
+    the run's id (never an earlier run's)."""
     from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 
     def train():
         return train_factorised_q(firefly1d_model, QIterationConfig(), seed=0)
 
-    if "PYTEST_XDIST_WORKER" not in os.environ:  # one process: its temporary folder is its own
+    if not is_xdist_worker(request):
         return train()
-    shared = tmp_path_factory.getbasetemp().parent / "trained_q.pt"  # this run's workers'
+    # the workers' temporary folders share a parent
+    shared = tmp_path_factory.getbasetemp().parent / f"trained_q-{testrun_uid}.pt"
     with FileLock(f"{shared}.lock"):
         if shared.is_file():  # written whole below, by this run's first worker
             return torch.load(shared, weights_only=False)

@@ -383,14 +383,19 @@ def _strip(summary: dict) -> dict:
     return summary
 
 
-@pytest.fixture
-def no_figures(monkeypatch):
-    """Runs that draw no figures: these tests compare the numbers a resumed run writes (the
-    figures of a whole run are test_fit2d's and test_cli_fit's), and drawing them is a fifth
-    of a small run's time."""
+def _without_figures(monkeypatch) -> None:
+    """Runs that draw no figures: these tests compare the numbers a resumed run writes, and
+    drawing is a fifth of a small run's time (a resumed fit's figures are drawn below, a
+    whole run's in test_fit2d and test_cli_fit)."""
     monkeypatch.setattr(recover2d, "plot_recovery", lambda summary, path, **kwargs: Path(path))
     monkeypatch.setattr(recover2d, "belief_figures", lambda *args, **kwargs: [])
     monkeypatch.setattr(recordings, "report_run", lambda folder: [])
+
+
+@pytest.fixture
+def no_figures(monkeypatch):
+    """:func:`_without_figures` for the whole test."""
+    _without_figures(monkeypatch)
 
 
 def _stop_at_call(monkeypatch, module, name: str, n: int) -> list[int]:
@@ -549,16 +554,16 @@ def test_a_recovery_stopped_in_its_particle_checks_resumes_with_those_done(
     assert resumed["timings"]["particle_check_map_s"] == seconds
 
 
-def test_a_fit_of_recordings_resumed_reads_its_particle_checks(
-    recorded, tmp_path, monkeypatch, no_figures
-):
-    """Rerun with ``--resume``, a finished fit with particle checks reads every fit and check;
-    with another particle count it runs only the checks."""
-    config = RecordingFitConfig(
-        n_screen=2, n_starts=1, max_iter=2, curvature="bfgs", particles=16, threads=1
-    )
+def test_a_fit_of_recordings_resumed_reads_its_particle_checks(recorded, tmp_path, monkeypatch):
+    """Rerun with ``--resume``, a finished fit with particle checks reads every fit and check
+    and draws its figures from what it read; with another particle count it runs only the
+    checks."""
+    config = RecordingFitConfig(n_screen=2, n_starts=1, max_iter=2, particles=16, threads=1)
     files = [str(p) for p in recorded]
-    whole = recordings.fit_recordings(files, tmp_path, config, progress=False)
+    with monkeypatch.context() as patch:
+        _without_figures(patch)
+        whole = recordings.fit_recordings(files, tmp_path, config, progress=False)
+    assert not list(tmp_path.glob("*.png"))
     fits = _count_fits(monkeypatch, recordings)
     checks = _stop_at_call(monkeypatch, recordings, "particle_check", 0)
     again = recordings.fit_recordings(files, tmp_path, config, progress=False, resume=True)
@@ -566,6 +571,14 @@ def test_a_fit_of_recordings_resumed_reads_its_particle_checks(
         "fit_8trials_map", "fit_8trials_marginal", "particles16_8trials_marginal"
     ]  # fmt: skip
     assert _strip(again) == _strip(whole)
+    drawn = [f"agent{i}_beliefs_{view}.png" for i in range(3) for view in ("overhead", "time")]
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        *drawn,
+        "q_function.png",
+        "recovery.png",
+    ]
     more = dataclasses.replace(config, particles=24)
-    recordings.fit_recordings(files, tmp_path, more, progress=False, resume=True)
+    with monkeypatch.context() as patch:
+        _without_figures(patch)
+        recordings.fit_recordings(files, tmp_path, more, progress=False, resume=True)
     assert fits == [] and len(checks) == 1
