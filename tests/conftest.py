@@ -40,7 +40,7 @@ def firefly1d_model():
 
 
 @pytest.fixture(scope="session")
-def trained_q(firefly1d_model, tmp_path_factory, request, testrun_uid):
+def trained_q(firefly1d_model, tmp_path_factory, request):
     """Algorithm 1 on the 1D task with the default settings, seed 0 (about 40 s on 1 thread),
     trained by the first xdist worker that asks and read by the others from a file named by
     the run's id (never an earlier run's)."""
@@ -52,7 +52,8 @@ def trained_q(firefly1d_model, tmp_path_factory, request, testrun_uid):
     if not is_xdist_worker(request):
         return train()
     # the workers' temporary folders share a parent
-    shared = tmp_path_factory.getbasetemp().parent / f"trained_q-{testrun_uid}.pt"
+    run = request.config.workerinput["testrunuid"]
+    shared = tmp_path_factory.getbasetemp().parent / f"trained_q-{run}.pt"
     with FileLock(f"{shared}.lock"):
         if shared.is_file():  # written whole below, by this run's first worker
             return torch.load(shared, weights_only=False)
