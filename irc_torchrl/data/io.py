@@ -200,7 +200,7 @@ def _writer(path: Path) -> Writer:
     writers = dict(zip(SUFFIXES, (_write_npz, _write_csv, _write_nwb), strict=True))
     if path.suffix not in writers:
         raise ValueError(
-            f"{path}: unknown format {path.suffix!r}; expected .npz, .csv, .nwb "
+            f"{path}: unknown format {path.suffix!r}; expected {', '.join(SUFFIXES)} "
             "or no suffix for a TensorDict memmap folder"
         )
     return writers[path.suffix]
