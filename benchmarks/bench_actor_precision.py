@@ -15,10 +15,11 @@ import argparse
 import time
 
 import torch
+from _common import integer, recorded_agents
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import _trial_scores
-from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.simulate import motor_noise_policy
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -27,10 +28,10 @@ ROWS = (1, 2, 16)
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--trials", type=int, default=100)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=0, help="seed of θ and trials")
+    parser.add_argument("--trials", type=integer(), default=100)
+    parser.add_argument("--threads", type=integer(), default=2)
+    parser.add_argument("--repeats", type=integer(), default=3)
+    parser.add_argument("--seed", type=integer(0), default=0, help="seed of θ and trials")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     actor, model, _ = load_ensemble_policy("firefly2d")
@@ -38,8 +39,7 @@ def main() -> None:
     n = max(ROWS)
     theta = space.sample((n,), generator=torch.Generator().manual_seed(args.seed))
     policy = motor_noise_policy(actor, spec, 0.1)
-    trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=args.seed + 1)
-    trials = trials.select("state", "action", "target", "mask", "task_theta")
+    trials = recorded_agents(model, policy, theta, args.trials, args.seed)
     free = space.free_mask
     k = int(free.sum())
     losses = {

@@ -1,8 +1,9 @@
 """Wall time of the 1D demo (goal: ≤ 3 minutes on 2 cores) and its accuracy figures.
 
 Run: ``python benchmarks/bench_demo1d.py [--seeds 0 1 2] [--out runs/bench_demo1d]``. Prints
-one line per seed and the median, with the learned/DP return ratio and the coverage per
-parameter; each seed's figures (``dp_comparison.png`` among them) land in ``OUT/seed_N``.
+one line per seed (its wall time, learned/DP return ratio and coverage per parameter), then
+the median wall time; each seed's figures (``dp_comparison.png`` among them) land in
+``OUT/seed_N``.
 """
 
 from __future__ import annotations
@@ -11,13 +12,15 @@ import argparse
 import statistics
 import time
 
+from _common import integer
+
 from irc_torchrl.algorithms.demo import run_demo
 from irc_torchrl.config import load_config
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--seeds", type=integer(0), nargs="+", default=[0])
     parser.add_argument("--out", default="runs/bench_demo1d")
     args = parser.parse_args()
     walls = []

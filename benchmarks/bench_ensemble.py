@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import integer
 
 from irc_torchrl.algorithms.ensemble import (
     evaluate_policy,
@@ -61,9 +62,12 @@ def ensemble_runs(seeds: list[int], overrides: list[str], out: Path) -> list[dic
                 "seed": seed,
                 "t80_s": first_time(history, "success_rate", 0.8),
                 "t90_s": first_time(history, "success_rate", 0.9),
+                # 95% of a final return that is not positive means nothing: never reached
                 "t95_return_s": next(
                     (r["train_cpu_s"] for r in history if r["mean_return"] >= 0.95 * final), None
-                ),
+                )
+                if final > 0
+                else None,
                 "updates_per_s": result.updates / max(history[-1]["train_cpu_s"], 1e-9),
                 "best": result.best,
                 "history": history,
@@ -177,13 +181,17 @@ def main() -> None:
     parser.add_argument("--out", default="runs/bench_ensemble")
     parser.add_argument(
         "--seeds",
-        type=int,
+        type=integer(0),
         nargs="+",
         default=None,
         help="the ensemble's (default 0 1 2; 0 with --quick)",
     )
     parser.add_argument("overrides", nargs="*", metavar="key=value")
     args = parser.parse_args()
+    try:  # a bad override is refused before any training
+        load_firefly2d_config(overrides=args.overrides)
+    except (ValueError, KeyError, TypeError) as error:
+        parser.error(str(error).strip("'\""))
     torch.set_num_threads(1)
     out = Path(args.out)
     seeds = args.seeds or ([0] if args.quick else [0, 1, 2])

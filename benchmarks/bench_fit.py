@@ -22,11 +22,12 @@ import sys
 import time
 
 import torch
+from _common import integer, recorded_agents
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import fit_theta
 from irc_torchrl.algorithms.qiteration import train_factorised_q
-from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy
 from irc_torchrl.envs import Firefly1DModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -51,20 +52,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--task", choices=["firefly1d", "firefly2d"], default="firefly1d")
     parser.add_argument("--method", choices=["map", "marginal"], default="map")
-    parser.add_argument("--agents", type=int, default=20)
-    parser.add_argument("--trials", type=int, default=100)
-    parser.add_argument("--max-iter", type=int, default=40)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--agents", type=integer(), default=20)
+    parser.add_argument("--trials", type=integer(), default=100)
+    parser.add_argument("--max-iter", type=integer(), default=40)
+    parser.add_argument("--threads", type=integer(), default=1)
     parser.add_argument("--actor-dtype", choices=sorted(ACTOR_DTYPES), default="float32")
-    parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0, help="seed of θ, trials and fits")
+    parser.add_argument("--workers", type=integer(), default=1)
+    parser.add_argument("--seed", type=integer(0), default=0, help="seed of θ, trials and fits")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     model, policy, action_model, settings = _task(args.task, args.actor_dtype, args.seed)
     space = model.theta_space
     theta = space.sample((args.agents,), generator=torch.Generator().manual_seed(args.seed))
-    trials = simulate_agents(model, policy, theta, args.trials, space.default(), seed=args.seed + 1)
-    trials = trials.select("state", "action", "target", "mask", "task_theta")
+    trials = recorded_agents(model, policy, theta, args.trials, args.seed)
 
     def fit(rows, workers=1):
         loss = InverseRationalLoss(model, action_model, n_agents=rows.shape[0], method=args.method)

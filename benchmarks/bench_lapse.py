@@ -19,10 +19,11 @@ import sys
 import time
 
 import torch
+from _common import integer, recorded_agents
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import fit_theta
-from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.simulate import motor_noise_policy
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -46,10 +47,15 @@ def main() -> None:
     sys.stdout.reconfigure(line_buffering=True)  # each line shows as it is printed
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 pairs, 4 agents × 40 trials")
-    parser.add_argument("--agents", type=int, default=None, help="default 8 (4 with --quick)")
-    parser.add_argument("--trials", type=int, default=None, help="default 100 (40 with --quick)")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=0, help="seed of θ, trials and fits")
+    parser.add_argument("--agents", type=integer(), default=None, help="default 8 (4 with --quick)")
+    parser.add_argument(
+        "--trials",
+        type=integer(11),  # the sandwich needs a trial per fitted coordinate (8 θ, 3 nuisance)
+        default=None,
+        help="default 100 (40 with --quick); at least 11",
+    )
+    parser.add_argument("--threads", type=integer(), default=2)
+    parser.add_argument("--seed", type=integer(0), default=0, help="seed of θ, trials and fits")
     args = parser.parse_args()
     if args.agents is None:
         args.agents = 4 if args.quick else 8
@@ -64,10 +70,7 @@ def main() -> None:
     print(f"{'agents':>6} {'fit':>5}  median relative error ({', '.join(space.free_names)})")
     for agents_lapse, fit_lapse in QUICK_PAIRS if args.quick else PAIRS:
         policy = motor_noise_policy(actor, model.action_spec, 0.1, agents_lapse)
-        trials = simulate_agents(
-            model, policy, theta, args.trials, space.default(), seed=args.seed + 1
-        )
-        held = trials.select("state", "action", "target", "mask", "task_theta")
+        held = recorded_agents(model, policy, theta, args.trials, args.seed)
         fitted = fit_lapse == "fit"
         action_model = censored_action_model(
             actor, model, "float32", lapse=0.01 if fitted else fit_lapse, fit_lapse=fitted
@@ -80,8 +83,9 @@ def main() -> None:
         )  # fmt: skip
         seconds = time.perf_counter() - start
         truth = theta[:, free].double()
-        error = ((result.theta_hat[:, free] - truth).abs() / truth).median(0).values
-        noise = action_model.motor_noise(result.nuisance).median(0).values
+        # the median of an even number of agents is the mean of the middle two
+        error = ((result.theta_hat[:, free] - truth).abs() / truth).quantile(0.5, dim=0)
+        noise = action_model.motor_noise(result.nuisance).quantile(0.5, dim=0)
         rates = action_model.lapse_rate(result.nuisance)
         print(
             f"{agents_lapse:>6} {fit_lapse:>5}  "

@@ -169,11 +169,6 @@ class ReachModel(TaskModel):
             return None
         return ABSURD * self.theta_space["g"].high * self.max_steps * self.dt
 
-    def parameter(self, theta: torch.Tensor, name: str) -> torch.Tensor:
-        """One parameter of θ ``[*B, d]`` as ``[*B, 1]``."""
-        i = self.theta_space.index(name)
-        return theta[..., i : i + 1]
-
     # --- world ---------------------------------------------------------------------------
     def initial_state(
         self, theta: torch.Tensor, generator: torch.Generator | None

@@ -159,3 +159,9 @@ def resolve_device(name: str) -> torch.device:
             "torch); expected 'cpu' or an available accelerator"
         ) from None
     return device
+
+
+def module_device(module: torch.nn.Module) -> torch.device:
+    """Where a module's first parameter or buffer lives (the CPU for one that holds none)."""
+    held = next(iter([*module.parameters(), *module.buffers()]), None)
+    return held.device if held is not None else torch.device("cpu")

@@ -170,7 +170,16 @@ def _task_model(spec: str | None) -> TaskModel | None:
         inspect.signature(task).bind()
     except TypeError as error:
         raise ValueError(f"--model: {name}() must build without arguments ({error})") from None
-    return task()
+    model = task()
+    spec = model.action_spec
+    if not (len(spec.shape) == 1 and spec.dtype.is_floating_point):
+        raise ValueError(
+            f"--model: {name}'s actions are {type(spec).__name__} {list(spec.shape)}; expected "
+            "continuous actions [da], which these commands' DDPG policy acts by (a discrete "
+            "task learns a factorised Q in Python, train_factorised_q and recover_agents: see "
+            "`irc demo --task firefly1d`)"
+        )
+    return model
 
 
 def _task_file_module(path: Path) -> ModuleType:
@@ -423,7 +432,8 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Learn one Q over the θ prior (Algorithm 1), check it against exact DP, simulate "
             "agents with θ* from the prior, fit each agent's θ with 95% intervals (Algorithm 2) "
-            "and report coverage. Writes config.yaml, summary.json and figures into --out."
+            "and report coverage. Writes config.yaml, summary.json and figures (with "
+            "--task firefly2d also trials/) into --out."
         ),
     )
     demo.add_argument(
@@ -440,7 +450,15 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--seed", type=int, default=None, help="seed of every random draw (overrides the config's)"
     )
-    demo.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
+    demo.add_argument(
+        "--config",
+        default=None,
+        help=(
+            "a YAML config (default: the embedded one); with --task firefly2d the demo's size "
+            "(n_prior_agents=2 n_mistaken_agents=1 n_trials=40 calibrate=0) replaces the "
+            "file's, and key=value overrides replace both"
+        ),
+    )
     demo.add_argument("--quiet", action="store_true", help="no progress bars")
     demo.add_argument(
         "overrides",

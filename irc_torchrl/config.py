@@ -23,7 +23,8 @@ from irc_torchrl.algorithms.ensemble import (
 )
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
-from irc_torchrl.checks import SEED_LIMIT, check_fields
+from irc_torchrl.algorithms.runtime import check_workers
+from irc_torchrl.checks import SEED_LIMIT, check_fields, resolve_device
 from irc_torchrl.checks import positive as _positive
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import TaskModel
@@ -98,6 +99,11 @@ class FitConfig:
             **{"fit.workers": self.workers, "fit.n_screen": self.n_screen},
             **{"fit.n_starts": self.n_starts, "fit.max_iter": self.max_iter},
         )
+        if self.n_starts > self.n_screen:
+            raise ValueError(
+                f"config: fit.n_starts={self.n_starts} exceeds fit.n_screen={self.n_screen}; "
+                "the starts are the best of the screened draws"
+            )
         _one_of("fit.curvature", self.curvature, CURVATURES)
         _one_of("fit.covariance", self.covariance, COVARIANCES)
         _one_of("fit.intervals", self.intervals, INTERVALS)
@@ -114,6 +120,9 @@ class Firefly1DConfig:
     threads: int = 1
     #: flush denormal floats to zero (they slow CPUs down several-fold)
     flush_denormal: bool = True
+    #: where Algorithm 1's Q, the simulation and the fits run, e.g. "cpu" or "cuda:0" (the
+    #: dynamic-programming check and the figures run on the CPU)
+    device: str = "cpu"
     q_iteration: QIterationConfig = field(default_factory=QIterationConfig)
     agents: AgentsConfig = field(default_factory=AgentsConfig)
     fit: FitConfig = field(default_factory=FitConfig)
@@ -127,6 +136,7 @@ class Firefly1DConfig:
         self.q_iteration.validate()
         self.agents.validate()
         self.fit.validate()
+        check_workers(self.fit.workers, resolve_device(self.device))
         return self
 
 
@@ -300,7 +310,8 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
     nested = dataclasses.is_dataclass(current) or isinstance(current, dict)
     if head not in names or (rest and not nested):
         valid = ", ".join(_valid_keys(root))
-        raise KeyError(f"config: unknown key {prefix + dotted!r}; valid keys: {valid}")
+        seed = " (the seed is the option --seed)" if prefix + dotted == "seed" else ""
+        raise KeyError(f"config: unknown key {prefix + dotted!r}{seed}; valid keys: {valid}")
     if rest and isinstance(current, dict):  # a mapping field: ``theta.g_v=1.2``
         current[rest] = value
         return

@@ -36,7 +36,8 @@ from irc_torchrl.modules.actor_critic import (
     make_actor,
     make_critic,
 )
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.modules.factorised_q import FactorisedQ
+from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 
@@ -128,6 +129,50 @@ def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
     for kwargs, message in cases:
         with pytest.raises((TypeError, ValueError), match=message):
             fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1, **kwargs)
+
+
+@pytest.mark.parametrize(
+    "network, got",
+    [
+        ("2d actor", r"an error \(KeyError"),
+        ("q of 2 actions", r"an error \(RuntimeError: index 2 is out of bounds"),
+        ("q of 4 actions", r"probabilities summing to 0\.\d+"),
+        ("q of another width", r"an error \(RuntimeError"),
+    ],
+)
+def test_a_network_of_another_task_is_refused_by_the_1d_loss(shipped, network, got):
+    """A 2D actor, or a Q of other actions or inputs, in a 1D loss failed deep in a fit (a
+    KeyError of tensordict's, a shape error in a matrix product) or not at all (4 actions)."""
+    model = Firefly1DModel()
+    width, d = model.belief_feature_dim, model.theta_space.dim
+    q = {
+        "2d actor": lambda: shipped[0],
+        "q of 2 actions": lambda: FactorisedQ(width, d, 2),
+        "q of 4 actions": lambda: FactorisedQ(width, d, 4),
+        "q of another width": lambda: FactorisedQ(width + 2, d, 3),
+    }[network]()
+    InverseRationalLoss(model, BoltzmannActionModel(FactorisedQ(width, d, 3)))  # its own: taken
+    expected = rf"task's \(firefly1d\) belief features \[1, {width + d}\] into probabilities"
+    with pytest.raises(
+        ValueError,
+        match=rf"action_model: expected a network that reads this {expected}.*, got {got}",
+    ):
+        InverseRationalLoss(model, BoltzmannActionModel(q))
+
+
+def test_a_policy_of_other_actions_is_refused_by_the_2d_loss(shipped):
+    """A policy of one output read the 2D task's two actions by broadcasting, silently."""
+    _, model = shipped
+    width = model.belief_feature_dim + model.theta_space.dim
+    one = CensoredGaussianActionModel(
+        torch.nn.Linear(width, 1).double(), -torch.ones(2), torch.ones(2)
+    )
+    with pytest.raises(
+        ValueError,
+        match=r"\(firefly2d\) belief features \[1, 23\] into actions "
+        r"\[1, 2\], got actions \[1, 1\]; a network trained on another task\?",
+    ):
+        InverseRationalLoss(model, one)
 
 
 def test_the_loss_names_a_policy_given_for_its_action_model_and_a_fit_with_nothing_free(

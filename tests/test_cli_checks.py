@@ -146,6 +146,32 @@ def test_a_key_error_prints_its_message_without_quotes(tmp_path, capsys):
     assert capsys.readouterr().err.startswith("irc simulate: error: theta: unknown θ parameter")
 
 
+@pytest.mark.parametrize("command", ["train", "simulate", "fit", "recover"])
+def test_a_task_of_discrete_actions_is_pointed_to_its_own_route(tmp_path, capsys, command):
+    """The 1D task named to a command of the DDPG policy: fit said to `irc train` its policy,
+    and train said its actions were not continuous, naming no way to fit one's recordings."""
+    files = ["a.csv"] if command == "fit" else []
+    model = "irc_torchrl.envs.firefly1d:Firefly1DModel"
+    assert main([command, *files, "--out", str(tmp_path / "o"), "--model", model]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"irc {command}: error: --model: Firefly1DModel's actions are "
+        "Categorical []; expected continuous actions [da]"
+    )
+    assert "train_factorised_q and recover_agents" in err and err.count("\n") == 1
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_demos_help_names_the_size_it_puts_over_a_config_file(capsys):
+    """``irc demo --task firefly2d --config FILE`` replaces four of the file's values by the
+    demo's: its help says which, as the code has them."""
+    from irc_torchrl.algorithms.recover2d import DEMO_OVERRIDES
+
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    assert " ".join(DEMO_OVERRIDES) in " ".join(capsys.readouterr().out.split())
+
+
 # --- the input checks at their edges -----------------------------------------------------------
 TENSOR = torch.tensor(2.0)
 REFUSED = {

@@ -1,6 +1,7 @@
 """The configuration system and the ``irc`` command."""
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +72,7 @@ def test_overrides_reach_nested_fields_with_types():
         ("fit.workers=0", "fit.workers must be positive, got 0"),
         ("fit.n_screen=0", "fit.n_screen must be positive, got 0"),
         ("fit.n_starts=0", "fit.n_starts must be positive, got 0"),
+        ("fit.n_starts=65", "fit.n_starts=65 exceeds fit.n_screen=64"),
         ("fit.max_iter=0", "fit.max_iter must be positive, got 0"),
         ("fit.workers=1.5", "fit.workers=1.5 is not a valid int"),
         ("agents.n_trials=[1", "override 'agents.n_trials=\\[1' is not valid YAML"),
@@ -191,6 +193,11 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
     for key in ("theta_true", "theta_hat", "ci_low", "ci_high"):
         assert set(agent[key]) == {"g_a", "log_sigma0", "goal_radius", "move_cost"}
     assert agent["ci_low"]["g_a"] <= agent["theta_hat"]["g_a"] <= agent["ci_high"]["g_a"]
+    # the fitted softmax temperature by name, in its natural unit, with its interval
+    for agent in summary["agents"]:
+        assert agent["temperature"] == pytest.approx(math.exp(agent["nuisance"][0]), rel=1e-12)
+        low, high = agent["temperature_ci"]
+        assert 0 < low < agent["temperature"] < high
     assert set(summary["parameters"]) == {"g_a", "log_sigma0"}
     for stats in summary["parameters"].values():
         assert 0 <= stats["coverage"] <= 1 and stats["median_ci_width"] > 0

@@ -127,3 +127,33 @@ def test_an_env_moved_to_the_gpu_draws_there_with_its_fixed_theta():
     rollout = env.rollout(5, break_when_any_done=False)
     assert rollout["state"].device.type == "cuda" and base.rng.device.type == "cuda"
     assert torch.equal(rollout["theta"][:, 0].cpu(), model.theta_space.default().expand(3, -1))
+
+
+def test_the_1d_q_and_its_recovery_run_where_they_are_put():
+    """Algorithm 1 of the 1D task (fitted Q-iteration on its env) and the recovery of agents
+    acting by that Q (simulation, the batched fit, intervals and temperature) on the Q's
+    device: nothing lands on the default device, and the numbers agree."""
+    from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
+    from irc_torchrl.algorithms.recovery import recover_agents
+    from irc_torchrl.config import AgentsConfig, FitConfig
+    from irc_torchrl.envs import Firefly1DModel
+
+    model = Firefly1DModel()
+    q_config = QIterationConfig(rounds=2, n_envs=32, steps_per_round=30, sweeps=5)
+    agents, fit = (
+        AgentsConfig(n_agents=2, n_trials=10),
+        FitConfig(n_screen=2, n_starts=1, max_iter=3),
+    )
+    runs = []
+    for default in ("cpu", "meta"):
+        with torch.device(default):
+            q = train_factorised_q(model, q_config, seed=1, device="cpu")
+            trials, summary, result = recover_agents(model, q, agents, fit, seed=2)
+        runs.append((q, trials, summary, result))
+    (q, trials, summary, result), (q_meta, trials_meta, summary_meta, result_meta) = runs
+    assert q_meta.weight.device.type == "cpu" and torch.equal(q_meta.weight, q.weight)
+    assert q.weight.abs().sum() > 0  # a Q was learned
+    assert trials_meta["action"].device.type == result_meta.theta_hat.device.type == "cpu"
+    assert torch.equal(trials_meta["action"], trials["action"])
+    del summary["timings"], summary_meta["timings"]
+    assert summary_meta == summary

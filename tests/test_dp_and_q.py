@@ -221,7 +221,8 @@ def test_training_is_deterministic_for_a_seed():
         ([[3.0, -1.0, 1.0, 0.3]], [0.0], 1.0, "theta: g_a=3 is outside its space"),
         ([1.0, -1.0, 1.0, 0.3], [0.0], 1.0, r"theta: expected \[n_theta, 4\], got \[4\]"),
         ([[1.0, -1.0, 1.0, 0.3]], [math.nan], 1.0, "relative_start: expected finite values"),
-        ([[1.0, -1.0, 1.0, 0.3]], [[0.0]], 1.0, r"relative_start: expected finite values \[n"),
+        ([[1.0, -1.0, 1.0, 0.3]], [[0.0]], 1.0, r"relative_start: expected a 1-D tensor \[n_"),
+        ([[1.0, -1.0, 1.0, 0.3]], 1.0, 1.0, r"relative_start: expected a 1-D tensor .*got \[\]"),
         ([[1.0, -1.0, 1.0, 0.3]], [0.0], 2.0, r"gamma: expected a discount in \(0, 1\]"),
         ([[1.0, -1.0, 1.0, 0.3]], [0.0], math.nan, r"gamma: expected a discount in \(0, 1\]"),
     ],
@@ -235,6 +236,15 @@ def test_dp_refuses_bad_input_naming_the_field(theta, start, gamma, message):
     if gamma == 1.0:
         with pytest.raises(ValueError, match=message):
             greedy_returns(model, lambda f: torch.zeros(*f.shape[:-1], 3), theta, start)
+
+
+def test_greedy_returns_refuse_a_q_of_other_actions():
+    """A Q of two actions acted by its argmax among 0 and 1, never moving right: silently."""
+    model = Firefly1DModel()
+    theta = model.theta_space.default().unsqueeze(0)
+    two = lambda f: torch.zeros(*f.shape[:-1], 2)  # noqa: E731
+    with pytest.raises(ValueError, match=r"q_values: expected one value per action \[\.\.\., 3\]"):
+        greedy_returns(model, two, theta, torch.zeros(1))
 
 
 @pytest.mark.parametrize(

@@ -92,7 +92,7 @@ def test_belief_follows_agent_theta_and_world_follows_task_theta():
     assert abs(increments.mean().item() - 0.6) < 4 * se
     assert abs(increments.std().item() / 0.5 - 1) < 0.05
     # the belief drifted far from the world: the agent's gain is wrong
-    assert ((tds[-1]["next", "belief", "mean"] - tds[-1]["next", "state"]).abs().mean() > 1.0)
+    assert (tds[-1]["next", "belief", "mean"] - tds[-1]["next", "state"]).abs().mean() > 1.0
 
 
 def test_belief_reward_stop_and_move():
@@ -109,8 +109,12 @@ def test_belief_reward_stop_and_move():
     sd = var.sqrt().double().numpy()
     d = (mean - target).double().numpy()
     expected = 10 * (stats.norm.cdf((radius - d) / sd) - stats.norm.cdf((-radius - d) / sd))
-    torch.testing.assert_close(last["next", "reward"].squeeze(-1).double(),
-                               torch.from_numpy(expected), atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(
+        last["next", "reward"].squeeze(-1).double(),
+        torch.from_numpy(expected),
+        atol=1e-5,
+        rtol=1e-4,
+    )
     assert last["next", "done"].all() and last["next", "terminated"].all()
     assert not last["next", "truncated"].any()
     # the world's own reward (no BeliefReward) is 10 · 1{|x − target| < r}
@@ -259,6 +263,20 @@ def test_the_world_pays_inside_the_goal_radius_of_theta_and_charges_its_move_cos
     action = torch.tensor([STOP, STOP, RIGHT])
     reward = model.reward(state, target, action, model.stops(action, torch.zeros(3, 1)), theta)
     torch.testing.assert_close(reward, torch.tensor([[10.0], [0.0], [-0.6]]))
+
+
+def test_another_tasks_theta_space_is_refused_and_a_parameter_read_by_name():
+    """A θ space of other parameters (the 2D task's) once built a model that failed on its
+    first step; each parameter is read by its name, an unknown name listing the valid ones."""
+    from irc_torchrl.envs.firefly2d import firefly2d_theta_space
+
+    with pytest.raises(ValueError, match=r"theta_space: expected parameters \['g_a', 'log_sigma0'"):
+        Firefly1DModel(theta_space=firefly2d_theta_space())
+    theta = SPACE.from_dict({"g_a": 1.25})
+    assert MODEL.parameter(theta, "g_a").tolist() == [1.25]
+    assert MODEL.parameter(theta.expand(4, 3, -1), "log_sigma0").shape == (4, 3, 1)
+    with pytest.raises(KeyError, match="g_v"):
+        MODEL.parameter(theta, "g_v")
 
 
 def test_reset_redraws_theta_even_from_a_tensordict_that_holds_one():

@@ -148,7 +148,7 @@ class _ScaledFlow(Firefly2DModel):
     depends on θ (through a parameter the stand-in actor does not read)."""
 
     def _scale(self, theta):
-        return 1 + self._theta(theta, "goal_radius")
+        return 1 + self.parameter(theta, "goal_radius")
 
     def observe(self, state, theta):
         return self._scale(theta) * super().observe(state, theta)
@@ -509,6 +509,8 @@ def test_particle_likelihood_refuses_no_particles():
 
 
 def test_the_loss_scores_transitions_beside_the_particle_likelihood_where_the_world_is_shared():
+    from irc_torchrl.envs import Firefly1DModel
+    from irc_torchrl.modules.factorised_q import FactorisedQ
     from irc_torchrl.modules.likelihood import BoltzmannActionModel
     from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -525,7 +527,10 @@ def test_the_loss_scores_transitions_beside_the_particle_likelihood_where_the_wo
     )
     assert ess.shape == (1, 3) and (moves.abs() > 1).all()
     torch.testing.assert_close(with_moves, actions_only + moves)
-    discrete = InverseRationalLoss(MODEL, BoltzmannActionModel(torch.nn.Identity()))
+    # a discrete task's: nothing to filter its belief by (refused before reading anything)
+    task = Firefly1DModel()
+    q = FactorisedQ(task.belief_feature_dim, task.theta_space.dim, 3)
+    discrete = InverseRationalLoss(task, BoltzmannActionModel(q))
     with pytest.raises(ValueError, match="continuous action model"):
         discrete.particle_log_likelihood(theta, nuisance, trials)
 

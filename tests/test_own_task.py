@@ -338,7 +338,7 @@ def test_irc_train_trains_and_resumes_a_task_named_on_the_command_line(tmp_path,
         (
             "irc_torchrl.envs.firefly1d:Firefly1DModel",
             [],
-            "model.action_spec: expected a bounded box of continuous actions",
+            r"--model: Firefly1DModel's actions are Categorical \[\]; expected continuous actions",
         ),
         (
             REACH,

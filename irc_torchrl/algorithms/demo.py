@@ -7,6 +7,7 @@ recovers every agent's θ with 95% intervals in one batched fit; the coverage is
 
 from __future__ import annotations
 
+import copy
 import time
 from pathlib import Path
 
@@ -63,10 +64,13 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
         desc="Algorithm 1: fitted Q-iteration",
         disable=not show_progress,
     ) as bar:
-        q = train_factorised_q(model, config.q_iteration, config.seed, lambda i, n: bar.update(1))
+        q = train_factorised_q(
+            model, config.q_iteration, config.seed, lambda i, n: bar.update(1), config.device
+        )
     train_s = time.perf_counter() - start
 
-    theta_grid, starts, optimal, learned = dp_comparison(model, q)
+    on_cpu = copy.deepcopy(q).cpu()  # exact dynamic programming and the figures run here
+    theta_grid, starts, optimal, learned = dp_comparison(model, on_cpu)
     dp_ratio = float(learned.mean() / optimal.mean())
     per_theta = learned.mean(1) / optimal.mean(1)
 
@@ -88,7 +92,7 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
         "timings": {"train_s": train_s, **recovery["timings"]},
     }
     write_json(out / "summary.json", summary)
-    arrays = _figure_arrays(model, q, theta_grid, optimal, learned)
+    arrays = _figure_arrays(model, on_cpu, theta_grid, optimal, learned)
     write_npz(out / "figures.npz", arrays)
     plot_recovery(summary, out / "recovery.png", units=model.theta_space.units)
     demo_figures(arrays, out)

@@ -26,7 +26,11 @@ def _inputs(
     if theta.ndim != 2:
         raise ValueError(f"theta: expected [n_theta, {space.dim}], got {list(theta.shape)}")
     start = torch.as_tensor(relative_start, dtype=torch.float64)
-    if start.ndim != 1 or not torch.isfinite(start).all():
+    if start.ndim != 1:
+        raise ValueError(
+            f"relative_start: expected a 1-D tensor [n_start], got {list(start.shape)}"
+        )
+    if not torch.isfinite(start).all():
         raise ValueError(f"relative_start: expected finite values [n_start], got {start.tolist()}")
     return theta, start
 
@@ -84,6 +88,11 @@ def greedy_returns(
         step = torch.full((n_theta, n_start, 1), t)
         with torch.no_grad():
             q = q_values(model.belief_features(mean, cov, target, step, theta).float())
+        if q.shape[-1] != model.action_spec.n:
+            raise ValueError(
+                f"q_values: expected one value per action [..., {model.action_spec.n}], "
+                f"got [..., {q.shape[-1]}]"
+            )
         action = q.argmax(-1)
         stop = model.stops(action, step)
         reward = model.belief_reward(mean, cov, target, action, stop, theta)[..., 0]

@@ -251,8 +251,6 @@ class Firefly2DConfig:
             "ddpg.collector_workers": d.collector_workers,
             "ddpg.n_steps": d.n_steps,
             "ddpg.policy_delay": d.policy_delay,
-            "ddpg.clone_updates + 1": d.clone_updates + 1,
-            "ddpg.critic_updates + 1": d.critic_updates + 1,
             "ddpg.lr_actor": d.lr_actor,
             "ddpg.lr_clone": d.lr_clone,
             "ddpg.lr_critic": d.lr_critic,
@@ -262,6 +260,8 @@ class Firefly2DConfig:
         }
         check_positive(**positive)
         for name, value in {
+            "ddpg.clone_updates": d.clone_updates,
+            "ddpg.critic_updates": d.critic_updates,
             "ddpg.bc_weight": d.bc_weight,
             "ddpg.bc_updates": d.bc_updates,
             "ddpg.pre_activation_weight": d.pre_activation_weight,

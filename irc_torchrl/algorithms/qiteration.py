@@ -17,11 +17,11 @@ from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import EGreedyModule, QValueModule
 
 from irc_torchrl.algorithms.runtime import float32_default
-from irc_torchrl.checks import check_fields, positive
+from irc_torchrl.checks import check_fields, positive, resolve_device
 from irc_torchrl.envs.belief import BeliefFeatures, BeliefReward, EKFBelief
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.envs.task_env import TaskEnv
-from irc_torchrl.modules.factorised_q import FactorisedQ
+from irc_torchrl.modules.factorised_q import FactorisedQ, regressors
 
 __all__ = ["QIterationConfig", "make_q_policy", "train_factorised_q", "FittedQIteration"]
 
@@ -79,7 +79,8 @@ class FittedQIteration:
     def __init__(self, q: FactorisedQ, gamma: float, ridge: float) -> None:
         self.q, self.gamma, self.ridge = q, gamma, ridge
         size = q.weight.shape[1] * q.weight.shape[2]
-        self.gram = torch.zeros(q.n_actions, size, size, dtype=torch.float64)
+        self.device = q.weight.device
+        self.gram = torch.zeros(q.n_actions, size, size, dtype=torch.float64, device=self.device)
         self.data: TensorDict | None = None
 
     def _bases(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -93,7 +94,7 @@ class FittedQIteration:
         next_phi, next_psi = self._bases(batch["next_features"])
         for a in range(self.q.n_actions):
             for chunk in torch.split((batch["action"] == a).nonzero().squeeze(-1), 4096):
-                x = (phi[chunk].unsqueeze(-1) * psi[chunk].unsqueeze(-2)).flatten(-2)
+                x = regressors(phi[chunk], psi[chunk])
                 self.gram[a] += x.T @ x
         new = TensorDict(
             action=batch["action"],
@@ -110,14 +111,14 @@ class FittedQIteration:
     def fit(self, sweeps: int) -> None:
         """Run ``sweeps`` Bellman backups from ``Q = 0`` and write the weights into ``q``."""
         d, (n_actions, k, m) = self.data, self.q.weight.shape
-        eye = torch.eye(k * m, dtype=torch.float64)
+        eye = torch.eye(k * m, dtype=torch.float64, device=self.device)
         per_action = []
         for a in range(n_actions):
             rows = (d["action"] == a).nonzero().squeeze(-1)
             gram = self.gram[a] + self.ridge * max(len(rows), 1) * eye
             inverse = torch.cholesky_inverse(torch.linalg.cholesky(gram))
             per_action.append((rows, d["phi"][rows], d["psi"][rows], inverse))
-        weight = torch.zeros(n_actions, k, m, dtype=torch.float64)
+        weight = torch.zeros(n_actions, k, m, dtype=torch.float64, device=self.device)
         for _ in range(sweeps):
             next_q = ((d["next_phi"] @ weight) * d["next_psi"]).sum(-1)
             target = d["reward"] + self.gamma * d["alive"] * next_q.max(0).values
@@ -132,14 +133,17 @@ def train_factorised_q(
     config: QIterationConfig | None = None,
     seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
+    device: torch.device | str = "cpu",
 ) -> FactorisedQ:
-    """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)."""
+    """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)
+    on ``device``, where the returned Q lives."""
     config = (config if config is not None else QIterationConfig()).validate()
+    device = resolve_device(str(device))
     # ε-greedy draws from the global generator, in the default dtype
     with float32_default(), torch.random.fork_rng():
         torch.manual_seed(seed)
         env = TransformedEnv(
-            TaskEnv(model, batch_size=(config.n_envs,), seed=seed),
+            TaskEnv(model, batch_size=(config.n_envs,), device=device, seed=seed),
             Compose(EKFBelief(model), BeliefReward(model)),
         )
         q = FactorisedQ(
@@ -151,11 +155,12 @@ def train_factorised_q(
             config.belief_scale,
             config.theta_scale,
             seed=seed,
-        )
+        ).to(device)
         features = BeliefFeatures(model)
         solver = FittedQIteration(q, config.gamma, config.ridge)
         for round_ in range(config.rounds):
-            policy = None if round_ == 0 else make_q_policy(model, q, config.epsilon)
+            with torch.device(device):  # TorchRL's modules are built on the default device
+                policy = None if round_ == 0 else make_q_policy(model, q, config.epsilon)
             with torch.no_grad():
                 rollout = env.rollout(
                     config.steps_per_round, policy, break_when_any_done=False

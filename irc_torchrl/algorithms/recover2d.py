@@ -178,8 +178,9 @@ class Recovery2DConfig:
             if getattr(self, name) < 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
         check_mixture(model or Firefly2DModel(), self.components, FINAL_STEPS)
-        if self.n_prior_agents < 0 or self.n_mistaken_agents < 0:
-            raise ValueError("config: n_prior_agents and n_mistaken_agents must be ≥ 0")
+        for name in ("n_prior_agents", "n_mistaken_agents"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
         if self.n_prior_agents + self.n_mistaken_agents < 1:
             raise ValueError("config: n_prior_agents + n_mistaken_agents must be ≥ 1")
         if not 0 < self.motor_noise < math.inf:

@@ -16,6 +16,7 @@ from tensordict import TensorDict
 
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.simulate import boltzmann_policy, simulate_agents
+from irc_torchrl.checks import module_device
 from irc_torchrl.config import AgentsConfig, FitConfig
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -33,7 +34,8 @@ def recover_agents(
     seed: int,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[TensorDict, dict, FitResult]:
-    """Draw θ* from the prior, simulate each agent, fit all of them in one batched call.
+    """Draw θ* from the prior, simulate each agent, fit all of them in one batched call, on
+    the Q's device.
 
     Returns the simulated trials, the summary's ``agents``, ``parameters`` and ``timings``
     entries, and the fit result.
@@ -42,17 +44,15 @@ def recover_agents(
     fit.validate()
     start = time.perf_counter()
     space = model.theta_space
+    device = module_device(q_network)
     theta_true = space.sample((agents.n_agents,), generator=torch.Generator().manual_seed(seed))
-    task_theta = space.default() if agents.world == "known" else None
+    theta_true = theta_true.to(device)
+    task_theta = space.default(device=device) if agents.world == "known" else None
     policy = boltzmann_policy(model, q_network, agents.temperature)
     trials = simulate_agents(model, policy, theta_true, agents.n_trials, task_theta, seed=seed + 1)
     simulated = time.perf_counter()
-    loss = InverseRationalLoss(
-        model,
-        BoltzmannActionModel(q_network, agents.temperature),
-        n_agents=agents.n_agents,
-        world=agents.world,
-    )
+    action_model = BoltzmannActionModel(q_network, agents.temperature)
+    loss = InverseRationalLoss(model, action_model, n_agents=agents.n_agents, world=agents.world)
     result = fit_theta(
         loss,
         trials,
@@ -67,6 +67,14 @@ def recover_agents(
         workers=fit.workers,
     )
     summary = score_recovery(space, theta_true, result)
+    # the fitted temperature and its 95% interval (Wald, in log τ), as irc fit's motor noise
+    ends = [
+        action_model.temperature(end)
+        for end in result.nuisance_intervals(torch.tensor([False], device=device))
+    ]
+    for i, entry in enumerate(summary["agents"]):
+        entry["temperature"] = float(action_model.temperature(result.nuisance[i]))
+        entry["temperature_ci"] = [float(end[i]) for end in ends]
     summary["timings"] = {"simulate_s": simulated - start, "fit_s": time.perf_counter() - simulated}
     return trials, summary, result
 

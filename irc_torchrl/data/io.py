@@ -394,7 +394,9 @@ def _on_model_grid(
     resample: bool,
 ) -> list[tuple[int | float, Trial]]:
     """Each trial with its time from its start, resampled to ``model.dt`` where it differs."""
-    step = float(np.median(np.concatenate([np.diff(t[time_column]) for _, t in trials])))
+    steps = np.concatenate([np.diff(t[time_column]) for _, t in trials])
+    # trials of one sample each (an agent stopping at once) say nothing of the step
+    step = float(np.median(steps)) if steps.size else model.dt
     if abs(step - model.dt) <= RESAMPLE_TOLERANCE * model.dt:
         resample = False
     elif not resample:
@@ -428,11 +430,6 @@ def _on_model_grid(
             )
         if resample:
             grid = model.dt * np.arange(int(np.floor(time[-1] / model.dt + 1e-6)) + 1)
-            if len(grid) < 2:
-                raise ValueError(
-                    f"{source}: trial {label}, field {time_column!r}: lasts {time[-1]:.6g} s; "
-                    f"expected at least one model step ({model.dt} s) to resample"
-                )
             previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
             for i in gaps:  # the longest gap holding model steps no sample was near
                 inside = int(((grid > time[i] + step) & (grid < time[i + 1] - step)).sum())

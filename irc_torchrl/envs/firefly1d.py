@@ -1,8 +1,9 @@
 """The paper's 1D "catching fireflies" task: walk left or right to a target seen once, then stop.
 
 The agent has no observations, so its Gaussian belief over its position evolves as in the
-paper, ``μ' = μ + g_a·a`` and ``σ²' = σ² + σ₀²``. Stopping pays ``R`` times the belief's
-probability of being within the goal radius of the target; every move costs ``move_cost``.
+paper, ``μ' = μ + g_a·a`` and ``σ²' = σ² + σ₀²``. Stopping within the goal radius of the
+target pays ``R`` (the agent expects ``R`` times its belief's probability of that); every move
+costs ``move_cost``.
 Targets are drawn up to ``target_range`` away, so that under some θ the far ones are not worth
 the walk.
 """
@@ -74,13 +75,15 @@ class Firefly1DModel(TaskModel):
         positive_number("target_range", target_range)
         positive_number("reward_value", reward_value)
         self.theta_space = theta_space if theta_space is not None else firefly1d_theta_space()
+        if self.theta_space.names != firefly1d_theta_space().names:
+            raise ValueError(
+                f"theta_space: expected parameters {firefly1d_theta_space().names}, "
+                f"got {self.theta_space.names}"
+            )
         self.target_range = target_range
         self.max_steps = max_steps
         self.reward_value = reward_value
         self.action_spec = Categorical(3)
-
-    def _theta(self, theta: torch.Tensor, name: str) -> torch.Tensor:
-        return theta[..., self.theta_space.index(name)].unsqueeze(-1)
 
     @staticmethod
     def move(action: torch.Tensor) -> torch.Tensor:
@@ -97,7 +100,7 @@ class Firefly1DModel(TaskModel):
     def transition(
         self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
     ) -> torch.Tensor:
-        return state + self._theta(theta, "g_a") * self.move(action).to(state.dtype)
+        return state + self.parameter(theta, "g_a") * self.move(action).to(state.dtype)
 
     def transition_jacobian(
         self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
@@ -113,7 +116,7 @@ class Firefly1DModel(TaskModel):
     def process_cov(
         self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
     ) -> torch.Tensor:
-        var = torch.exp(2 * self._theta(theta, "log_sigma0"))
+        var = torch.exp(2 * self.parameter(theta, "log_sigma0"))
         return var.expand(*torch.broadcast_shapes(state.shape[:-1], theta.shape[:-1]), 1).unsqueeze(
             -1
         )
@@ -130,13 +133,13 @@ class Firefly1DModel(TaskModel):
         theta: torch.Tensor,
     ) -> torch.Tensor:
         success = self.succeeded(state, target, stop, theta).to(state.dtype)
-        return torch.where(stop, self.reward_value * success, -self._theta(theta, "move_cost"))
+        return torch.where(stop, self.reward_value * success, -self.parameter(theta, "move_cost"))
 
     def succeeded(
         self, state: torch.Tensor, target: torch.Tensor, stop: torch.Tensor, theta: torch.Tensor
     ) -> torch.Tensor:
         """Stopped inside the goal: what the world rewards."""
-        return stop & ((state - target).abs() < self._theta(theta, "goal_radius"))
+        return stop & ((state - target).abs() < self.parameter(theta, "goal_radius"))
 
     #: the agent knows where it starts, up to this variance (positive, so σ stays differentiable)
     initial_variance = 1e-4
@@ -159,9 +162,9 @@ class Firefly1DModel(TaskModel):
         theta: torch.Tensor,
     ) -> torch.Tensor:
         p = gaussian_interval_probability(
-            mean - target, cov[..., 0].sqrt(), self._theta(theta, "goal_radius")
+            mean - target, cov[..., 0].sqrt(), self.parameter(theta, "goal_radius")
         )
-        return torch.where(stop, self.reward_value * p, -self._theta(theta, "move_cost"))
+        return torch.where(stop, self.reward_value * p, -self.parameter(theta, "move_cost"))
 
     belief_feature_dim = 5
 
@@ -176,7 +179,7 @@ class Firefly1DModel(TaskModel):
         """Relative position and its size, spread, time, and the belief's goal probability."""
         relative = mean - target
         std = cov[..., 0].clamp_min(0).sqrt()
-        p_goal = gaussian_interval_probability(relative, std, self._theta(theta, "goal_radius"))
+        p_goal = gaussian_interval_probability(relative, std, self.parameter(theta, "goal_radius"))
         time = step.to(mean.dtype) / self.max_steps
         batch = torch.broadcast_shapes(relative.shape[:-1], theta.shape[:-1])
         relative = relative / self.target_range

@@ -187,11 +187,6 @@ class Firefly2DModel(TaskModel):
             raise ValueError(f"target_angle: expected an angle in [0, π], got {target_angle}")
         self.reward_value = positive_number("reward_value", reward_value)
         self.action_spec = Bounded(-1.0, 1.0, shape=(2,), dtype=torch.float32)
-        self._idx = {n: i for i, n in enumerate(self.theta_space.names)}
-
-    def _theta(self, theta: torch.Tensor, name: str) -> torch.Tensor:
-        i = self._idx[name]
-        return theta[..., i : i + 1]
 
     # --- world ---------------------------------------------------------------------------
     def initial_state(
@@ -211,7 +206,7 @@ class Firefly2DModel(TaskModel):
         x, y, phi, v, w = state.unbind(-1)
         dt = self.dt
         pose = torch.stack([x + v * phi.cos() * dt, y + v * phi.sin() * dt, phi + w * dt], -1)
-        gains = torch.cat([self._theta(theta, "g_v"), self._theta(theta, "g_w")], -1)
+        gains = torch.cat([self.parameter(theta, "g_v"), self.parameter(theta, "g_w")], -1)
         velocity = gains * action.to(state.dtype)
         batch = _batch(pose.shape[:-1], velocity.shape[:-1])
         return torch.cat([pose.expand(*batch, 3), velocity.expand(*batch, 2)], -1)
@@ -236,8 +231,10 @@ class Firefly2DModel(TaskModel):
     def process_cov(
         self, state: torch.Tensor, action: torch.Tensor, theta: torch.Tensor
     ) -> torch.Tensor:
-        pos = self._theta(theta, "sigma_pos") ** 2
-        vel = torch.cat([self._theta(theta, "sigma_v"), self._theta(theta, "sigma_w")], -1) ** 2
+        pos = self.parameter(theta, "sigma_pos") ** 2
+        vel = (
+            torch.cat([self.parameter(theta, "sigma_v"), self.parameter(theta, "sigma_w")], -1) ** 2
+        )
         var = torch.cat([pos, pos, torch.zeros_like(pos), vel], -1) + NOISE_FLOOR**2
         return torch.diag_embed(var.expand(*_batch(state.shape[:-1], var.shape[:-1]), 5))
 
@@ -252,7 +249,9 @@ class Firefly2DModel(TaskModel):
         return jac
 
     def observation_cov(self, state: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-        std = torch.cat([self._theta(theta, "obs_sigma_v"), self._theta(theta, "obs_sigma_w")], -1)
+        std = torch.cat(
+            [self.parameter(theta, "obs_sigma_v"), self.parameter(theta, "obs_sigma_w")], -1
+        )
         var = std**2 + NOISE_FLOOR**2
         return torch.diag_embed(var.expand(*_batch(state.shape[:-1], var.shape[:-1]), 2))
 
@@ -271,7 +270,7 @@ class Firefly2DModel(TaskModel):
     def effort(self, action: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
         """The effort cost ``effort_cost ‖a‖²`` of one step, ``[*B, 1]``."""
         effort = (action.to(theta.dtype) ** 2).sum(-1, keepdim=True)
-        return self._theta(theta, "effort_cost") * effort
+        return self.parameter(theta, "effort_cost") * effort
 
     def reward(
         self,
@@ -289,7 +288,7 @@ class Firefly2DModel(TaskModel):
     ) -> torch.Tensor:
         """Stopped inside the goal: what the world rewards."""
         distance = (state[..., :2] - target).norm(dim=-1, keepdim=True)
-        return stop & (distance < self._theta(theta, "goal_radius"))
+        return stop & (distance < self.parameter(theta, "goal_radius"))
 
     # --- agent ---------------------------------------------------------------------------
     def initial_belief(
@@ -308,7 +307,7 @@ class Firefly2DModel(TaskModel):
         theta: torch.Tensor,
     ) -> torch.Tensor:
         p = disc_probability(
-            mean[..., :2] - target, cov[..., :2, :2], self._theta(theta, "goal_radius")
+            mean[..., :2] - target, cov[..., :2, :2], self.parameter(theta, "goal_radius")
         )
         return self.reward_value * stop.to(p.dtype) * p - self.effort(action, theta)
 
@@ -340,7 +339,7 @@ class Firefly2DModel(TaskModel):
         cov_aa = sin * cos * (c_yy - c_xx) + (cos**2 - sin**2) * c_xy
         std_ahead, std_aside = var_ahead.clamp_min(0).sqrt(), var_aside.clamp_min(0).sqrt()
         corr = cov_aa / (std_ahead * std_aside).clamp_min(NOISE_FLOOR**2)
-        g_v, g_w = self._theta(theta, "g_v"), self._theta(theta, "g_w")
+        g_v, g_w = self.parameter(theta, "g_v"), self.parameter(theta, "g_w")
         diag = torch.diagonal(cov, dim1=-2, dim2=-1)[..., PHI:].clamp_min(0).sqrt()
         scale = self.target_distance[1]
         parts = [

@@ -60,6 +60,11 @@ class TaskModel(abc.ABC):
         elif not getattr(cls, "_named", False):  # a name a base gave itself is inherited
             cls.name = cls.__name__
 
+    def parameter(self, theta: torch.Tensor, name: str) -> torch.Tensor:
+        """One parameter of θ ``[*B, d]`` as ``[*B, 1]`` (a KeyError listing the names else)."""
+        i = self.theta_space.index(name)
+        return theta[..., i : i + 1]
+
     # --- world ---------------------------------------------------------------------------
     @abc.abstractmethod
     def initial_state(

@@ -19,14 +19,24 @@ class RandomBasis(nn.Module):
         self, in_features: int, n_basis: int, scale: float, generator: torch.Generator
     ) -> None:
         super().__init__()
-        weight = scale * torch.randn(in_features, n_basis - 1, generator=generator)
-        bias = scale * (2 * torch.rand(n_basis - 1, generator=generator) - 1)
+        # drawn where the generator is (the CPU), whatever the default device
+        weight = scale * torch.randn(
+            in_features, n_basis - 1, generator=generator, device=generator.device
+        )
+        bias = scale * (
+            2 * torch.rand(n_basis - 1, generator=generator, device=generator.device) - 1
+        )
         self.register_buffer("weight", weight)
         self.register_buffer("bias", bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = torch.tanh(x @ self.weight.to(x.dtype) + self.bias.to(x.dtype))
         return torch.cat([h.new_ones(*h.shape[:-1], 1), h], -1)
+
+
+def regressors(phi: torch.Tensor, psi: torch.Tensor) -> torch.Tensor:
+    """``φ ⊗ ψ`` per row, ``[*B, K·M]``, from the bases ``[*B, K]`` and ``[*B, M]``."""
+    return (phi.unsqueeze(-1) * psi.unsqueeze(-2)).flatten(-2)
 
 
 class FactorisedQ(nn.Module):
@@ -57,7 +67,9 @@ class FactorisedQ(nn.Module):
         self.belief_dim = belief_dim
         self.phi = RandomBasis(belief_dim, n_belief_basis, belief_scale, generator)
         self.psi = RandomBasis(theta_dim, n_theta_basis, theta_scale, generator)
-        self.weight = nn.Parameter(torch.zeros(n_actions, n_belief_basis, n_theta_basis))
+        self.weight = nn.Parameter(
+            torch.zeros(n_actions, n_belief_basis, n_theta_basis, device=generator.device)
+        )
 
     @property
     def n_actions(self) -> int:
@@ -66,8 +78,7 @@ class FactorisedQ(nn.Module):
     def design(self, features: torch.Tensor) -> torch.Tensor:
         """The regressors ``φ(b) ⊗ ψ(θ)``, ``[*B, K·M]``: Q is linear in them for each action."""
         phi = self.phi(features[..., : self.belief_dim])
-        psi = self.psi(features[..., self.belief_dim :])
-        return (phi.unsqueeze(-1) * psi.unsqueeze(-2)).flatten(-2)
+        return regressors(phi, self.psi(features[..., self.belief_dim :]))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         phi = self.phi(features[..., : self.belief_dim])

@@ -105,6 +105,10 @@ class BoltzmannActionModel(nn.Module):
             [math.log(temperature)], dtype=torch.float32, device="cpu"
         )
 
+    def temperature(self, nuisance: torch.Tensor) -> torch.Tensor:
+        """The softmax temperatures ``[*B]`` of nuisance rows ``[*B, 1]``."""
+        return nuisance[..., 0].exp()
+
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
         """Action logits ``Q / τ``, ``[*B, n_actions]``; ``nuisance`` broadcasts against ``*B``."""
         return self.q_network(features) / nuisance[..., :1].exp()

@@ -16,7 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
-from irc_torchrl.checks import count
+from irc_torchrl.checks import count, module_device
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
@@ -107,6 +107,7 @@ class InverseRationalLoss(LossModule):
                 "action_model: expected an action model with nuisance_init and log_prob (e.g. "
                 f"CensoredGaussianActionModel around the policy), got {type(action_model).__name__}"
             )
+        _check_action_model(model, action_model)
         self.method = method
         self.moments = moments
         check_mixture(model, components, final_steps)
@@ -470,6 +471,56 @@ class InverseRationalLoss(LossModule):
         return TensorDict(
             loss_nll=-log_likelihood.sum(), log_likelihood=log_likelihood.detach(), batch_size=[]
         )
+
+
+def _check_action_model(model: TaskModel, action_model: nn.Module) -> None:
+    """Refuse, before any work, an action model whose network does not read this task's
+    features into its actions (one trained on another task): it failed deep inside a fit.
+
+    One point is scored: every discrete action (their probabilities must sum to one), or one
+    continuous action (the policy's output must have the action's size)."""
+    device = module_device(action_model)
+    space = model.theta_space
+    theta = space.normalise(space.default(torch.float64, device))
+    features = torch.cat([theta.new_zeros(model.belief_feature_dim), theta]).unsqueeze(0)
+    nuisance = action_model.nuisance_init.to(device, torch.float64).unsqueeze(0)
+    spec = model.action_spec
+    continuous = spec.dtype.is_floating_point
+    n = spec.shape[-1] if continuous else spec.n
+    expected = (
+        f"actions [1, {n}]" if continuous else f"probabilities of its {n} actions summing to 1"
+    )
+    try:
+        with torch.no_grad():
+            wrong = _probe(action_model, features, nuisance, continuous, n)
+    except (RuntimeError, KeyError, IndexError, TypeError, ValueError) as error:
+        wrong = f"an error ({type(error).__name__}: {str(error).splitlines()[0]})"
+    width = f"belief features [1, {features.shape[-1]}]"
+    if wrong is not None:
+        raise ValueError(
+            f"action_model: expected a network that reads this task's ({model.name}) {width} "
+            f"into {expected}, got {wrong}; a network trained on another task?"
+        )
+
+
+def _probe(
+    action_model: nn.Module,
+    features: torch.Tensor,
+    nuisance: torch.Tensor,
+    continuous: bool,
+    n: int,
+) -> str | None:
+    """What :func:`_check_action_model` finds wrong at one point (``None``: nothing)."""
+    if continuous:
+        action = features.new_zeros(1, n)
+        action_model.log_prob(features, action, nuisance)
+        policy = getattr(action_model, "actor", None)
+        shape = list(policy(features).shape) if policy is not None else [1, n]
+        return f"actions {shape}" if shape != [1, n] else None
+    action = torch.arange(n, device=features.device)
+    logp = action_model.log_prob(features.expand(n, -1), action, nuisance)
+    mass = float(logp.exp().sum())  # NaN (a Q undefined there) is not judged
+    return f"probabilities summing to {mass:.3g}" if abs(mass - 1) > 1e-3 else None
 
 
 def _check_broadcast_features(model: TaskModel) -> None:
