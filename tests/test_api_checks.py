@@ -134,12 +134,13 @@ def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
 @pytest.mark.parametrize(
     "network, got",
     [
-        ("2d actor", r"an error \(KeyError"),
-        ("q of 2 actions", r"an error \(RuntimeError: index 2 is out of bounds"),
-        ("q of 4 actions", r"probabilities summing to 0\.\d+"),
-        ("q of another width", r"an error \(RuntimeError"),
+        ("2d actor", r"scores this task's .*, got an error \(KeyError"),
+        ("q of 2 actions", r"scores this task's .*, got an error \(RuntimeError: index 2 is out"),
+        ("q of 4 actions", r"reads this task's .* into probabilities of its 3 actions summing to "
+         r"1, got probabilities summing to 0\.\d+; a network trained on another task\?"),
+        ("q of another width", r"scores this task's .*, got an error \(RuntimeError"),
     ],
-)
+)  # fmt: skip
 def test_a_network_of_another_task_is_refused_by_the_1d_loss(shipped, network, got):
     """A 2D actor, or a Q of other actions or inputs, in a 1D loss failed deep in a fit (a
     KeyError of tensordict's, a shape error in a matrix product) or not at all (4 actions)."""
@@ -152,16 +153,16 @@ def test_a_network_of_another_task_is_refused_by_the_1d_loss(shipped, network, g
         "q of another width": lambda: FactorisedQ(width + 2, d, 3),
     }[network]()
     InverseRationalLoss(model, BoltzmannActionModel(FactorisedQ(width, d, 3)))  # its own: taken
-    expected = rf"task's \(firefly1d\) belief features \[1, {width + d}\] into probabilities"
+    features = rf"\(firefly1d\) belief features \[1, {width + d}\] in float64"
     with pytest.raises(
-        ValueError,
-        match=rf"action_model: expected a network that reads this {expected}.*, got {got}",
+        ValueError, match=rf"action_model: expected a network that (?=.*{features}){got}"
     ):
         InverseRationalLoss(model, BoltzmannActionModel(q))
 
 
 def test_a_policy_of_other_actions_is_refused_by_the_2d_loss(shipped):
-    """A policy of one output read the 2D task's two actions by broadcasting, silently."""
+    """A policy of one output read the 2D task's two actions by broadcasting, silently; an
+    action model that needs the scored components, as the loss always passes them, is taken."""
     _, model = shipped
     width = model.belief_feature_dim + model.theta_space.dim
     one = CensoredGaussianActionModel(
@@ -169,10 +170,17 @@ def test_a_policy_of_other_actions_is_refused_by_the_2d_loss(shipped):
     )
     with pytest.raises(
         ValueError,
-        match=r"\(firefly2d\) belief features \[1, 23\] into actions "
-        r"\[1, 2\], got actions \[1, 1\]; a network trained on another task\?",
+        match=r"\(firefly2d\) belief features \[1, 23\] in float64 into "
+        r"actions \[1, 2\], got actions \[1, 1\]; a network trained on another task\?",
     ):
         InverseRationalLoss(model, one)
+
+    class Scoring(CensoredGaussianActionModel):
+        def log_prob(self, features, action, nuisance, scored):  # scored required
+            return super().log_prob(features, action, nuisance, scored)
+
+    two = Scoring(torch.nn.Linear(width, 2).double(), -torch.ones(2), torch.ones(2))
+    InverseRationalLoss(model, two)
 
 
 def test_the_loss_names_a_policy_given_for_its_action_model_and_a_fit_with_nothing_free(

@@ -148,8 +148,9 @@ def test_round_trip_of_discrete_actions_keeps_integers(tmp_path, model1d, trials
 
 @pytest.mark.parametrize("suffix", [".npz", ".csv", ""])
 def test_trials_of_one_step_round_trip(tmp_path, model1d, suffix):
-    """A 1D agent whose target starts inside its goal stops at once: a trial of one sample,
-    which a recording must read back (they were refused as too short to have a time step)."""
+    """A 1D agent may stop at its first step (its target inside its goal, or, as here, acting
+    at random): a trial of one sample, which a recording must read back (they were refused as
+    too short to have a time step)."""
     theta = model1d.theta_space.sample((3,), generator=torch.Generator().manual_seed(1))
     trials = simulate_agents(model1d, None, theta, 10, model1d.theta_space.default(), seed=1)
     trials = trials.reshape(-1, trials.shape[-1])

@@ -111,7 +111,7 @@ class BoltzmannActionModel(nn.Module):
 
     def logits(self, features: torch.Tensor, nuisance: torch.Tensor) -> torch.Tensor:
         """Action logits ``Q / τ``, ``[*B, n_actions]``; ``nuisance`` broadcasts against ``*B``."""
-        return self.q_network(features) / nuisance[..., :1].exp()
+        return self.q_network(features) / self.temperature(nuisance).unsqueeze(-1)
 
     def log_prob(
         self, features: torch.Tensor, action: torch.Tensor, nuisance: torch.Tensor

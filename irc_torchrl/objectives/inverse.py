@@ -8,6 +8,7 @@ world's (``world="shared"``) the recorded state transitions are scored too.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -16,7 +17,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
-from irc_torchrl.checks import count, module_device
+from irc_torchrl.checks import count
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel
@@ -477,25 +478,31 @@ def _check_action_model(model: TaskModel, action_model: nn.Module) -> None:
     """Refuse, before any work, an action model whose network does not read this task's
     features into its actions (one trained on another task): it failed deep inside a fit.
 
-    One point is scored: every discrete action (their probabilities must sum to one), or one
-    continuous action (the policy's output must have the action's size)."""
-    device = module_device(action_model)
+    A copy on the CPU (where no index error is fatal, and a model built before ``.to(device)``
+    moves its buffers scores as it will there) scores one point as the loss does: every
+    discrete action (their probabilities must sum to one), or one continuous action (one
+    log-probability, and a policy exposed as ``.actor`` giving the action's size)."""
+    probe = copy.deepcopy(action_model).cpu()
     space = model.theta_space
-    theta = space.normalise(space.default(torch.float64, device))
+    theta = space.normalise(space.default(torch.float64))
     features = torch.cat([theta.new_zeros(model.belief_feature_dim), theta]).unsqueeze(0)
-    nuisance = action_model.nuisance_init.to(device, torch.float64).unsqueeze(0)
+    nuisance = probe.nuisance_init.to("cpu", torch.float64).unsqueeze(0)
     spec = model.action_spec
     continuous = spec.dtype.is_floating_point
     n = spec.shape[-1] if continuous else spec.n
     expected = (
         f"actions [1, {n}]" if continuous else f"probabilities of its {n} actions summing to 1"
     )
+    width = f"belief features [1, {features.shape[-1]}] in float64"
     try:
         with torch.no_grad():
-            wrong = _probe(action_model, features, nuisance, continuous, n)
-    except (RuntimeError, KeyError, IndexError, TypeError, ValueError) as error:
-        wrong = f"an error ({type(error).__name__}: {str(error).splitlines()[0]})"
-    width = f"belief features [1, {features.shape[-1]}]"
+            wrong = _probe(model, probe, features, nuisance, continuous, n)
+    except (RuntimeError, KeyError, IndexError, TypeError, ValueError, AttributeError) as error:
+        raise ValueError(
+            f"action_model: expected a network that scores this task's ({model.name}) {width}, "
+            f"got an error ({type(error).__name__}: {str(error).splitlines()[0]}); a network "
+            "of another task, or of another dtype?"
+        ) from None
     if wrong is not None:
         raise ValueError(
             f"action_model: expected a network that reads this task's ({model.name}) {width} "
@@ -504,6 +511,7 @@ def _check_action_model(model: TaskModel, action_model: nn.Module) -> None:
 
 
 def _probe(
+    model: TaskModel,
     action_model: nn.Module,
     features: torch.Tensor,
     nuisance: torch.Tensor,
@@ -511,14 +519,18 @@ def _probe(
     n: int,
 ) -> str | None:
     """What :func:`_check_action_model` finds wrong at one point (``None``: nothing)."""
+    action = features.new_zeros(1, n) if continuous else torch.arange(n)
+    step = torch.zeros(len(action), 1, dtype=torch.long)
+    scored = model.scored_actions(action, step)
+    extra = () if scored is None else (scored,)  # as the loss passes it
     if continuous:
-        action = features.new_zeros(1, n)
-        action_model.log_prob(features, action, nuisance)
+        logp = action_model.log_prob(features, action, nuisance, *extra)
         policy = getattr(action_model, "actor", None)
         shape = list(policy(features).shape) if policy is not None else [1, n]
-        return f"actions {shape}" if shape != [1, n] else None
-    action = torch.arange(n, device=features.device)
-    logp = action_model.log_prob(features.expand(n, -1), action, nuisance)
+        if shape != [1, n]:
+            return f"actions {shape}"
+        return f"log-probabilities {list(logp.shape)}" if logp.shape != (1,) else None
+    logp = action_model.log_prob(features.expand(n, -1), action, nuisance, *extra)
     mass = float(logp.exp().sum())  # NaN (a Q undefined there) is not judged
     return f"probabilities summing to {mass:.3g}" if abs(mass - 1) > 1e-3 else None
 
