@@ -70,7 +70,9 @@ def recover_agents(
     # the fitted temperature and its 95% interval (Wald, in log τ), as irc fit's motor noise
     ends = [
         action_model.temperature(end)
-        for end in result.nuisance_intervals(torch.tensor(action_model.nuisance_bounded))
+        for end in result.nuisance_intervals(
+            torch.tensor(action_model.nuisance_bounded, device=device)
+        )
     ]
     for i, entry in enumerate(summary["agents"]):
         entry["temperature"] = float(action_model.temperature(result.nuisance[i]))

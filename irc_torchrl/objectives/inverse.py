@@ -519,8 +519,9 @@ def _probe(
     n: int,
 ) -> str | None:
     """What :func:`_check_action_model` finds wrong at one point (``None``: nothing)."""
-    action = features.new_zeros(1, n) if continuous else torch.arange(n)
-    step = torch.zeros(len(action), 1, dtype=torch.long)
+    cpu = features.device  # whatever the default device
+    action = features.new_zeros(1, n) if continuous else torch.arange(n, device=cpu)
+    step = torch.zeros(len(action), 1, dtype=torch.long, device=cpu)
     scored = model.scored_actions(action, step)
     extra = () if scored is None else (scored,)  # as the loss passes it
     if continuous:
