@@ -134,7 +134,7 @@ def _task_model(spec: str | None) -> TaskModel | None:
     import inspect
 
     from irc_torchrl.checkpoint import first_line
-    from irc_torchrl.envs.model import TaskModel
+    from irc_torchrl.envs.model import TaskModel, continuous_actions
 
     if spec is None:
         return None
@@ -172,7 +172,7 @@ def _task_model(spec: str | None) -> TaskModel | None:
         raise ValueError(f"--model: {name}() must build without arguments ({error})") from None
     model = task()
     spec = model.action_spec
-    if not (len(spec.shape) == 1 and spec.dtype.is_floating_point):
+    if not continuous_actions(spec):
         raise ValueError(
             f"--model: {name}'s actions are {type(spec).__name__} {list(spec.shape)}; expected "
             "continuous actions [da], which these commands' DDPG policy acts by (a discrete "

@@ -99,15 +99,20 @@ class FitConfig:
             **{"fit.workers": self.workers, "fit.n_screen": self.n_screen},
             **{"fit.n_starts": self.n_starts, "fit.max_iter": self.max_iter},
         )
-        if self.n_starts > self.n_screen:
-            raise ValueError(
-                f"config: fit.n_starts={self.n_starts} exceeds fit.n_screen={self.n_screen}; "
-                "the starts are the best of the screened draws"
-            )
+        _starts_within_screen(self.n_starts, self.n_screen, "fit.")
         _one_of("fit.curvature", self.curvature, CURVATURES)
         _one_of("fit.covariance", self.covariance, COVARIANCES)
         _one_of("fit.intervals", self.intervals, INTERVALS)
         return self
+
+
+def _starts_within_screen(n_starts: int, n_screen: int, prefix: str = "") -> None:
+    """Refuse more starts than screened draws, which the fit picks them from."""
+    if n_starts > n_screen:
+        raise ValueError(
+            f"config: {prefix}n_starts={n_starts} exceeds {prefix}n_screen={n_screen}; "
+            "the starts are the best of the screened draws"
+        )
 
 
 @dataclass
@@ -244,11 +249,7 @@ class RecordingFitConfig:
         for name in ("particles", "calibrate"):
             if getattr(self, name) < 0:
                 raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
-        if self.n_starts > self.n_screen:
-            raise ValueError(
-                f"config: n_starts={self.n_starts} exceeds n_screen={self.n_screen}; "
-                "the starts are the best of the screened draws"
-            )
+        _starts_within_screen(self.n_starts, self.n_screen)
         _one_of("curvature", self.curvature, CURVATURES)
         _one_of("covariance", self.covariance, COVARIANCES)
         _one_of("intervals", self.intervals, INTERVALS)

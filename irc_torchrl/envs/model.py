@@ -16,7 +16,7 @@ from torchrl.data import Categorical, TensorSpec
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["ABSURD", "TaskModel", "action_in_spec", "bounded_box"]
+__all__ = ["ABSURD", "TaskModel", "action_in_spec", "bounded_box", "continuous_actions"]
 
 #: a recorded rate this many times the largest gain of its unit in the θ space is taken as a
 #: unit mistake (:meth:`TaskModel.rate_limit`'s default)
@@ -227,3 +227,8 @@ def bounded_box(low: torch.Tensor, high: torch.Tensor) -> bool:
     extremes): a lapse is uniform over the box, which those leave without a usable width."""
     extreme = torch.finfo(torch.float32).max
     return bool((low.abs() < extreme).all() and (high.abs() < extreme).all())
+
+
+def continuous_actions(spec: TensorSpec) -> bool:
+    """Whether a task's action spec is a vector of continuous actions ``[da]`` (else discrete)."""
+    return len(spec.shape) == 1 and spec.dtype.is_floating_point

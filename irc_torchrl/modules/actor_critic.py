@@ -17,7 +17,7 @@ from torchrl.modules import MLP, Actor, TanhModule, ValueOperator
 
 from irc_torchrl.checks import count
 from irc_torchrl.envs.belief import BeliefFeatures
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, continuous_actions
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 
 __all__ = [
@@ -51,7 +51,7 @@ def _feature_dim(model: TaskModel) -> int:
 def _continuous_actions(model: TaskModel, maker: str) -> int:
     """The action dimension of a task with continuous actions ``[da]``, else a one-line error."""
     spec = model.action_spec
-    if len(spec.shape) != 1 or not spec.dtype.is_floating_point:
+    if not continuous_actions(spec):
         raise TypeError(
             f"model: {maker} needs continuous actions [da], got {type(spec).__name__} actions of "
             f"shape {list(spec.shape)} (a discrete task learns a Q: train_factorised_q)"
