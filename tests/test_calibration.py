@@ -330,9 +330,10 @@ def test_calibration_keeps_fixed_parameters_and_intervals_over_the_whole_range(s
 def test_calibrating_honest_intervals_leaves_them_nearly_as_they_are(firefly1d_model, trained_q):
     """On the 1D task the likelihood is exact and the Wald intervals honest, so the factors
     come out near 1. 12 agents from the prior (seed 0), 100 trials each (seed 1), calibrated on
-    3 datasets each (36 pivots per parameter). Tolerance: factors in [0.7, 1.5] (measured 0.91
-    for g_a and 0.80 for log σ₀); intervals narrowed 3-fold beforehand come out with factors
-    exactly 3 times as large (the pivots scale with the half-widths)."""
+    3 datasets each (36 pivots per parameter), each fitted from the best of 16 screened draws.
+    Tolerance: factors in [0.7, 1.5] (measured 1.01 for g_a and 0.76 for log σ₀; from the best
+    two of the draws, the same to 0.003); intervals narrowed 3-fold beforehand come out with
+    factors exactly 3 times as large (the pivots scale with the half-widths)."""
     model, space = firefly1d_model, firefly1d_model.theta_space
     policy = boltzmann_policy(model, trained_q, TEMPERATURE)
 
@@ -341,7 +342,7 @@ def test_calibrating_honest_intervals_leaves_them_nearly_as_they_are(firefly1d_m
         loss = InverseRationalLoss(
             model, BoltzmannActionModel(trained_q, TEMPERATURE), n_agents=theta.shape[0]
         )
-        return fit_theta(loss, trials, n_starts=2, n_screen=16, seed=0)
+        return fit_theta(loss, trials, n_starts=1, n_screen=16, seed=0)
 
     theta_true = space.sample((12,), generator=torch.Generator().manual_seed(0))
     result = fit(theta_true, 1)

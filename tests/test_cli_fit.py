@@ -176,7 +176,7 @@ def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulate
     # calibrate=1: a recording simulated at θ̂ and refitted; each interval is the fit's own
     # scaled about θ̂ (in the fit's coordinates) by its parameter's factor
     args = ["fit", str(simulated / "agent0.csv"), "--out", str(tmp_path), "--quiet"]
-    options = ["calibrate=1", "calibration_tail=own"]
+    options = ["calibrate=1", "calibration_tail=own", "n_screen=2", "n_starts=1", "max_iter=5"]
     assert main([*args, "--method", "map", "--free", ",".join(FREE), *options]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     calibration = summary["calibration"]
@@ -614,7 +614,8 @@ def test_a_fit_of_recordings_sharing_a_name_keeps_each_apart(simulated, tmp_path
     files = [str(simulated / "agent0.csv"), str(tmp_path / "lab" / "agent0.csv")]
     files.append(str(tmp_path / "lab" / "agent0_1.csv"))
     out = tmp_path / "fit"
-    settings = ["--free", "g_v", "--method", "marginal", "max_iter=2", "particles=20"]
+    settings = ["--free", "g_v", "--method", "marginal", "max_iter=2", "particles=20",
+                "n_screen=2", "n_starts=1"]  # fmt: skip
     assert main(["fit", *files, "--out", str(out), "--quiet", *settings]) == 0
     summary = json.loads((out / "summary.json").read_text())
     labels = [agent["label"] for agent in summary["agents"]]
@@ -648,7 +649,8 @@ def test_a_rerun_into_its_own_folder_leaves_nothing_of_the_earlier_run(tmp_path)
     (sim / "notes.txt").write_text("the lab's own file")
     assert main(["simulate", "--out", str(sim), "--quiet", "n_agents=1", "n_trials=3"]) == 0
     assert sorted(p.name for p in sim.iterdir()) == ["agent0.csv", "notes.txt", "summary.json"]
-    settings = ["--quiet", "--free", "g_v", "--method", "map", "max_iter=2", "n_screen=2"]
+    settings = ["--quiet", "--free", "g_v", "--method", "map", "max_iter=2", "n_screen=2",
+                "n_starts=1"]  # fmt: skip
     files = [str(sim / "agent0.csv"), str(tmp_path / "other.csv")]
     shutil.copy(sim / "agent0.csv", files[1])
     fit.mkdir()
@@ -676,7 +678,8 @@ def test_a_fit_of_a_recording_in_cm_reports_its_distances_in_metres(simulated, t
         rows.append(",".join(cells))
     (tmp_path / "cm.csv").write_text("\n".join([lines[0], *rows]) + "\n")
     units = [f"units.{n}=cm" for n in ("x", "y", "target_x", "target_y")] + ["units.v=cm/s"]
-    settings = ["--quiet", "--free", "g_v,goal_radius", "--method", "map", "max_iter=2"]
+    settings = ["--quiet", "--free", "g_v,goal_radius", "--method", "map", "max_iter=2",
+                "n_screen=2", "n_starts=1"]  # fmt: skip
     cm_file, m_file = str(tmp_path / "cm.csv"), str(simulated / "agent0.csv")
     assert main(["fit", cm_file, "--out", str(tmp_path / "cm"), *settings, *units]) == 0
     assert main(["fit", m_file, "--out", str(tmp_path / "m"), *settings]) == 0

@@ -64,7 +64,7 @@ def test_recovery_runs_where_its_config_says():
     config = Recovery2DConfig(
         n_prior_agents=1, n_mistaken_agents=1, n_trials=4, calibrate=1, device="cpu"
     )
-    config.fit.n_screen, config.fit.max_iter = 2, 3
+    config.fit.n_screen, config.fit.n_starts, config.fit.max_iter = 2, 1, 2
     config.fit.covariance = "hessian"  # 4 trials are too few for the sandwich's 10 coordinates
     expected_trials, expected, _ = recover_firefly2d(config)
     with torch.device("meta"):

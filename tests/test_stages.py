@@ -32,8 +32,8 @@ from irc_torchrl.theta import ThetaSpace
 
 #: a recovery small enough for seconds, with both estimators and two calibration datasets
 TINY = dict(
-    n_prior_agents=2, n_mistaken_agents=0, n_trials=10, calibrate=2, threads=1,
-    fit=FitConfig(n_screen=2, n_starts=1, max_iter=2, curvature="bfgs", covariance="sandwich"),
+    n_prior_agents=2, n_mistaken_agents=0, n_trials=4, calibrate=2, threads=1,
+    fit=FitConfig(n_screen=2, n_starts=1, max_iter=2, curvature="bfgs"),
 )  # fmt: skip
 
 
@@ -493,9 +493,9 @@ def test_a_recovery_of_other_settings_refits_and_leaves_only_its_own_stages(tmp_
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory) -> list[Path]:
-    """Three simulated agents of 8 trials each, as CSV recordings."""
+    """Three simulated agents of 4 trials each, as CSV recordings."""
     out = tmp_path_factory.mktemp("recorded")
-    assert main(["simulate", "--out", str(out), "--quiet", "n_agents=3", "n_trials=8",
+    assert main(["simulate", "--out", str(out), "--quiet", "n_agents=3", "n_trials=4",
                  "threads=1"]) == 0  # fmt: skip
     return sorted(out.glob("agent*.csv"))
 
@@ -522,7 +522,7 @@ def test_an_interrupted_fit_of_recordings_resumes_from_the_command_line(
     assert fits == ["map", "marginal"]
     printed = capsys.readouterr().out
     assert (
-        "resumed: fit_8trials_map, fit_8trials_marginal, calibration1atmarginal_8trials_map"
+        "resumed: fit_4trials_map, fit_4trials_marginal, calibration1atmarginal_4trials_map"
         in printed
     )
     summary, reference = (json.loads((tmp_path / d / "summary.json").read_text()) for d in
@@ -568,7 +568,7 @@ def test_a_fit_of_recordings_resumed_reads_its_particle_checks(recorded, tmp_pat
     checks = _stop_at_call(monkeypatch, recordings, "particle_check", 0)
     again = recordings.fit_recordings(files, tmp_path, config, progress=False, resume=True)
     assert fits == [] and checks == [] and again["resumed"] == [
-        "fit_8trials_map", "fit_8trials_marginal", "particles16_8trials_marginal"
+        "fit_4trials_map", "fit_4trials_marginal", "particles16_4trials_marginal"
     ]  # fmt: skip
     assert _strip(again) == _strip(whole)
     drawn = [f"agent{i}_beliefs_{view}.png" for i in range(3) for view in ("overhead", "time")]
