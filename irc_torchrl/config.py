@@ -394,6 +394,34 @@ def load_recording_fit_config(overrides: Sequence[str] = ()) -> RecordingFitConf
     return _update(RecordingFitConfig(), None, overrides).validate()
 
 
+def _file_commands() -> dict[type, str]:
+    """The command that reads each kind of config file (``configs/`` holds one of each)."""
+    from irc_torchrl.algorithms.recover2d import Recovery2DConfig
+
+    return {
+        Firefly1DConfig: "irc demo --task firefly1d",
+        Firefly2DConfig: "irc train",
+        Recovery2DConfig: "irc recover or irc demo --task firefly2d",
+    }
+
+
+def _check_file_kind(config: Any, data: dict, path: Path) -> None:
+    """Refuse a file written for another command (its keys all that command's, some not
+    ``config``'s), naming both commands, before the first unknown key is reported alone."""
+    names = {f.name for f in dataclasses.fields(config)}
+    unknown = [key for key in data if key not in names]
+    if not unknown:
+        return
+    commands = _file_commands()
+    for kind, command in commands.items():
+        if kind is not type(config) and set(data) <= {f.name for f in dataclasses.fields(kind)}:
+            this = commands.get(type(config), type(config).__name__)
+            raise KeyError(
+                f"config: {path} holds `{command}`'s settings (e.g. {unknown[0]!r}), not "
+                f"`{this}`'s; configs/ holds a file of each"
+            )
+
+
 def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> Any:
     """``config`` updated in place by the YAML file at ``path``, then by ``key=value`` items."""
     if path is not None:
@@ -405,6 +433,7 @@ def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> A
             raise ValueError(
                 f"config: {path} must hold a mapping of keys, got {type(data).__name__}"
             )
+        _check_file_kind(config, data, path)
         for key, value in data.items():
             _set(config, key, value, config)
     for item in overrides:

@@ -162,6 +162,34 @@ def test_a_yaml_file_giving_a_key_twice_is_refused_naming_both_lines(tmp_path):
     assert (agents.n_agents, agents.n_trials) == (5, 7)
 
 
+#: each shipped config file, the loader reading it and the command named for it
+FILES = {
+    "firefly1d.yaml": (load_config, "irc demo --task firefly1d"),
+    "firefly2d.yaml": (load_firefly2d_config, "irc train"),
+    "recover2d.yaml": (load_recovery2d_config, "irc recover or irc demo --task firefly2d"),
+}
+
+
+@pytest.mark.parametrize("given", FILES)
+@pytest.mark.parametrize("loader", FILES)
+def test_another_commands_config_file_is_refused_naming_both_commands(given, loader, tmp_path):
+    """A shipped file handed to another command is named as that command's (rather than by
+    its first key this one lacks); a file with a key of no command's keeps the plain error."""
+    load, this = FILES[loader]
+    if given == loader:
+        load(ROOT / "configs" / given)  # its own command reads it
+        return
+    other = FILES[given][1]
+    with pytest.raises(
+        KeyError, match=rf"{given} holds `{other}`'s settings \(e\.g\. '\w+'\), not `{this}`'s"
+    ):
+        load(ROOT / "configs" / given)
+    data = {**yaml.safe_load((ROOT / "configs" / given).read_text()), "no_such_key": 1}
+    (tmp_path / "typo.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(KeyError, match="config: unknown key '[a-z_]+'; valid keys"):
+        load(tmp_path / "typo.yaml")
+
+
 def test_missing_config_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="no file at"):
         load_config(tmp_path / "absent.yaml")
