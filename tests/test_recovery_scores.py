@@ -106,3 +106,8 @@ def test_scores_read_each_free_parameters_own_column_and_take_medians_against_th
     assert [agent["theta_true"]["b"] for agent in summary["agents"]] == truth_b.tolist()
     row = format_parameters(summary["parameters"])[1].split()
     assert row[0] == "b" and row[-4:] == ["0.4000", "0.2000", "0.0200", "0.8000"]
+    # a parameter that may be negative (a logarithm) has no relative error: n/a, not |err|/|θ*|
+    signed = ThetaSpace([space["a"], Parameter("b", -10.0, 20.0, 5.0)], {"a": 1.0})
+    b = score_recovery(signed, truth, result)["parameters"]["b"]
+    assert b["median_rel_error"] is None and b["median_abs_error"] == pytest.approx(0.4)
+    assert format_parameters({"b": b})[1].split()[-4:] == ["0.4000", "n/a", "0.0133", "0.8000"]

@@ -113,7 +113,8 @@ def score_recovery(space: ThetaSpace, theta_true: torch.Tensor, result: FitResul
     (0 and 1 for honest intervals; a robust sd of 1.4 says the intervals are 1.4× too narrow).
 
     Errors are given relative to θ* and to the width of the parameter's prior range: the first
-    grows without bound for a θ* near 0 (a small effort cost), the second compares parameters.
+    grows without bound for a θ* near 0 (a small effort cost) and is ``None`` for a parameter
+    that may be negative (a logarithm: no ratio scale), the second compares parameters.
     """
     names = space.names
     agents = []
@@ -129,6 +130,7 @@ def score_recovery(space: ThetaSpace, theta_true: torch.Tensor, result: FitResul
         low, high = result.intervals.low[:, j], result.intervals.high[:, j]
         error = (hat - truth).abs()
         span = space[name].high - space[name].low
+        relative = None if space[name].low < 0 else error / truth.abs().clamp_min(1e-12)
         covered = int(((low <= truth) & (truth <= high)).sum())
         std = result.intervals.std[:, j].double()
         # fixed (std 0) and unidentified (std inf) parameters have no z-score
@@ -138,7 +140,7 @@ def score_recovery(space: ThetaSpace, theta_true: torch.Tensor, result: FitResul
             "coverage_ci": coverage_interval(covered, len(truth)),
             **_z_calibration(z),
             "median_abs_error": statistics.median(error.tolist()),
-            "median_rel_error": statistics.median((error / truth.abs().clamp_min(1e-12)).tolist()),
+            "median_rel_error": None if relative is None else statistics.median(relative.tolist()),
             "median_range_error": statistics.median(error.tolist()) / span,
             "median_ci_width": statistics.median((high - low).tolist()),
             "identified_fraction": float(result.intervals.identified[:, j].double().mean()),
@@ -162,7 +164,7 @@ def format_parameters(parameters: dict) -> list[str]:
         lines.append(
             f"{name:<14}{s['coverage']:>9.2f}{f'{low:.2f}–{high:.2f}':>14}"
             f"{number(s['z_median'], '+.2f'):>9}{number(s['z_robust_sd'], '.2f'):>7}"
-            f"{s['median_abs_error']:>14.4f}{s['median_rel_error']:>16.4f}"
+            f"{s['median_abs_error']:>14.4f}{number(s['median_rel_error'], '.4f'):>16}"
             f"{s['median_range_error']:>11.4f}"
             f"{s['median_ci_width']:>17.4f}"
         )
