@@ -650,7 +650,12 @@ MALFORMED = [
     ("angular velocity in deg/s", "2d", ".npz", _scale(180 / math.pi, "w"), ValueError,
      r"trial \d+, field 'w': .* rad/s .*expected below 14 .*units=\{'w': 'deg/s'\}"),
     ("position in cm", "2d", ".csv", _scale(100.0, "x", "y"), ValueError,
-     r"trial \d+, field 'x/y': the speed between samples of .*units=\{'x': 'cm'\}"),
+     r"trial \d+, field 'x/y': the speed between samples of .*fastest\)\. A unit mistake\? "
+     r"Declare it: .*units=\{'x': 'cm'\}"),
+    ("seconds read as ms", "2d", ".csv", _scale(0.001, "time"), ValueError,
+     r"field 'x/y': the speed between samples .*Times in another unit than declared \(a median "
+     r"step of 0\.0001 s against the task's 0\.1 s: seconds given units\.time=ms\?\), or a unit "
+     r"mistake of the positions\? Declare it: units\.x=cm"),
     ("1d position in cm", "1d", ".csv", _scale(100.0, "x"), ValueError,
      r"trial \d+, field 'x': the speed between samples .*expected below 15"),
     ("heading in degrees", "2d", ".csv", _scale(180 / math.pi, "heading"), ValueError,

@@ -47,6 +47,9 @@ KINEMATIC_RATIO = 3.0
 #: how far the velocities the actions drive may follow them otherwise than the world's θ says
 #: before a warning: a rig's gain outside the task's, or a filtered joystick, misleads the fit
 WORLD_RATIO = 1.25
+#: a trial sampled this many times faster than the task steps may have its times in another
+#: unit than declared (seconds read as ms): a refused speed between samples says so first
+FAST_SAMPLING = 30.0
 
 
 def required_columns(model: TaskModel, time_column: str, trial_column: str) -> list[str]:
@@ -165,7 +168,7 @@ def check_trial(
         )
     _check_constant(where, trial, model)
     _check_actions(where, trial, model, time)
-    _check_speeds(where, trial, model, time)
+    _check_speeds(where, trial, model, time, time_column)
 
 
 def _check_constant(where: str, trial: Trial, model: TaskModel) -> None:
@@ -213,10 +216,13 @@ def _check_actions(where: str, trial: Trial, model: TaskModel, time: np.ndarray)
         )
 
 
-def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) -> None:
+def _check_speeds(
+    where: str, trial: Trial, model: TaskModel, time: np.ndarray, time_column: str
+) -> None:
     """Velocities, displacements and heading changes within reach of the θ space."""
     units = dict(zip(model.state_names, model.state_units, strict=True))
     dt = np.diff(time)
+    step = float(np.median(dt)) if dt.size else model.dt
     rates: list[tuple[str, np.ndarray, np.ndarray, str, str]] = []  # field, |rate|, at, units
     for name, unit in units.items():
         if unit in ("distance/s", "rad/s"):
@@ -232,11 +238,18 @@ def _check_speeds(where: str, trial: Trial, model: TaskModel, time: np.ndarray) 
             i = int(np.flatnonzero(rate > limit)[0])
             kind = "the speed between samples of " if field_unit == "distance" else ""
             hint = _LIKELY_MISTAKE[field_unit]
+            timing = (
+                f"Times in another unit than declared (a median step of {step:.3g} s against "
+                f"the task's {model.dt:g} s: seconds given units.{time_column}=ms?), or a unit "
+                "mistake of the positions? "
+                if field_unit == "distance" and step * FAST_SAMPLING < model.dt
+                else "A unit mistake? "
+            )
             raise ValueError(
                 f"{where}, field {name!r}: {kind}{rate[i]:.6g} {unit} at time {at[i]:.6g} s; "
                 f"expected below {limit:.6g} {unit} (the task's rate_limit: by default "
                 f"{ABSURD:g}× the θ space's fastest). "
-                f"A unit mistake? Declare it: units.{name.split('/')[0]}={hint} (irc fit) or "
+                f"{timing}Declare it: units.{name.split('/')[0]}={hint} (irc fit) or "
                 f"units={{{name.split('/')[0]!r}: {hint!r}}} (read_trials), or similar"
             )
     for name, unit in units.items():
