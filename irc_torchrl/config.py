@@ -406,18 +406,21 @@ def _file_commands() -> dict[type, str]:
 
 
 def _check_file_kind(config: Any, data: dict, path: Path) -> None:
-    """Refuse a file written for another command (its keys all that command's, some not
-    ``config``'s), naming both commands, before the first unknown key is reported alone."""
-    names = {f.name for f in dataclasses.fields(config)}
-    unknown = [key for key in data if key not in names]
-    if not unknown:
+    """Refuse a file written for another command, naming both commands, where the first key
+    this command lacks would be reported alone: all its keys that command's, two or more not
+    this one's, one of them no other command's (a misplaced key keeps the unknown-key error)."""
+    unknown = [key for key in data if key not in {f.name for f in dataclasses.fields(config)}]
+    if len(unknown) < 2:
         return
     commands = _file_commands()
+    fields = {kind: {f.name for f in dataclasses.fields(kind)} for kind in commands}
     for kind, command in commands.items():
-        if kind is not type(config) and set(data) <= {f.name for f in dataclasses.fields(kind)}:
+        others = set().union(*(names for k, names in fields.items() if k is not kind))
+        own = [key for key in unknown if key not in others]
+        if kind is not type(config) and own and set(data) <= fields[kind]:
             this = commands.get(type(config), type(config).__name__)
             raise KeyError(
-                f"config: {path} holds `{command}`'s settings (e.g. {unknown[0]!r}), not "
+                f"config: {path} holds `{command}`'s settings (e.g. {own[0]!r}), not "
                 f"`{this}`'s; configs/ holds a file of each"
             )
 

@@ -174,7 +174,8 @@ FILES = {
 @pytest.mark.parametrize("loader", FILES)
 def test_another_commands_config_file_is_refused_naming_both_commands(given, loader, tmp_path):
     """A shipped file handed to another command is named as that command's (rather than by
-    its first key this one lacks); a file with a key of no command's keeps the plain error."""
+    its first key this one lacks), cited by a key no other command has; a file with a key of
+    no command's, or with one key of another command's (misplaced), keeps the plain error."""
     load, this = FILES[loader]
     if given == loader:
         load(ROOT / "configs" / given)  # its own command reads it
@@ -188,6 +189,11 @@ def test_another_commands_config_file_is_refused_naming_both_commands(given, loa
     (tmp_path / "typo.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(KeyError, match="config: unknown key '[a-z_]+'; valid keys"):
         load(tmp_path / "typo.yaml")
+    own = yaml.safe_load((ROOT / "configs" / loader).read_text())
+    misplaced = next(key for key in data if key not in own)
+    (tmp_path / "misplaced.yaml").write_text(yaml.safe_dump({**own, misplaced: data[misplaced]}))
+    with pytest.raises(KeyError, match=f"config: unknown key '{misplaced}'; valid keys"):
+        load(tmp_path / "misplaced.yaml")
 
 
 def test_missing_config_file(tmp_path):

@@ -550,6 +550,13 @@ def _scale(factor: float, *fields: str):
     return corrupt
 
 
+def _fast_in_cm(columns):
+    """Positions in cm of a recording sampled at 1 kHz (a fast rig, no time unit mistake)."""
+    columns = _scale(100.0, "x", "y")(columns)
+    columns["time"] = columns["time"] / 100
+    return columns
+
+
 def _rename(old: str, new: str | None):
     def corrupt(columns):
         value = columns.pop(old)
@@ -653,9 +660,11 @@ MALFORMED = [
      r"trial \d+, field 'x/y': the speed between samples of .*fastest\)\. A unit mistake\? "
      r"Declare it: .*units=\{'x': 'cm'\}"),
     ("seconds read as ms", "2d", ".csv", _scale(0.001, "time"), ValueError,
-     r"field 'x/y': the speed between samples .*Times in another unit than declared \(a median "
-     r"step of 0\.0001 s against the task's 0\.1 s: seconds given units\.time=ms\?\), or a unit "
-     r"mistake of the positions\? Declare it: units\.x=cm"),
+     r"field 'x/y': the speed between samples .*Times in seconds given units\.time=ms \(a "
+     r"median step of 0\.0001 s against the task's 0\.1 s\)\? Drop it\. Or a unit mistake of "
+     r"the positions\? Declare it: units\.x=cm"),
+    ("positions in cm sampled at 1 kHz", "2d", ".csv", _fast_in_cm, ValueError,
+     r"field 'x/y': the speed between samples .*fastest\)\. A unit mistake\? Declare it"),
     ("1d position in cm", "1d", ".csv", _scale(100.0, "x"), ValueError,
      r"trial \d+, field 'x': the speed between samples .*expected below 15"),
     ("heading in degrees", "2d", ".csv", _scale(180 / math.pi, "heading"), ValueError,

@@ -47,9 +47,6 @@ KINEMATIC_RATIO = 3.0
 #: how far the velocities the actions drive may follow them otherwise than the world's θ says
 #: before a warning: a rig's gain outside the task's, or a filtered joystick, misleads the fit
 WORLD_RATIO = 1.25
-#: a trial sampled this many times faster than the task steps may have its times in another
-#: unit than declared (seconds read as ms): a refused speed between samples says so first
-FAST_SAMPLING = 30.0
 
 
 def required_columns(model: TaskModel, time_column: str, trial_column: str) -> list[str]:
@@ -238,11 +235,12 @@ def _check_speeds(
             i = int(np.flatnonzero(rate > limit)[0])
             kind = "the speed between samples of " if field_unit == "distance" else ""
             hint = _LIKELY_MISTAKE[field_unit]
+            # a median step a thousandth of the task's (within 3×): seconds read as ms
             timing = (
-                f"Times in another unit than declared (a median step of {step:.3g} s against "
-                f"the task's {model.dt:g} s: seconds given units.{time_column}=ms?), or a unit "
-                "mistake of the positions? "
-                if field_unit == "distance" and step * FAST_SAMPLING < model.dt
+                f"Times in seconds given units.{time_column}=ms (a median step of {step:.3g} s "
+                f"against the task's {model.dt:g} s)? Drop it. Or a unit mistake of the "
+                "positions? "
+                if field_unit == "distance" and 1 / 3 < step * 1000 / model.dt < 3
                 else "A unit mistake? "
             )
             raise ValueError(
