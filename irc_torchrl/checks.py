@@ -59,6 +59,15 @@ def positive(**values: float) -> None:
             raise ValueError(f"config: {name} must be finite, got {value}")
 
 
+def non_negative(**values: float) -> None:
+    """Refuse a config value that is not a finite number ≥ 0."""
+    for name, value in values.items():
+        if not value >= 0:
+            raise ValueError(f"config: {name} must be ≥ 0, got {value}")
+        if not math.isfinite(value):
+            raise ValueError(f"config: {name} must be finite, got {value}")
+
+
 def positive_number(field: str, value: float) -> float:
     """``value`` as a float if it is a finite number > 0, else a one-line error naming
     ``field``."""

@@ -24,7 +24,7 @@ from irc_torchrl.algorithms.ensemble import (
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 from irc_torchrl.algorithms.runtime import check_workers
-from irc_torchrl.checks import SEED_LIMIT, check_fields, resolve_device
+from irc_torchrl.checks import SEED_LIMIT, check_fields, non_negative, resolve_device
 from irc_torchrl.checks import positive as _positive
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import TaskModel
@@ -246,9 +246,7 @@ class RecordingFitConfig:
             workers=self.workers,
             components=self.components,
         )
-        for name in ("particles", "calibrate"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
+        non_negative(particles=self.particles, calibrate=self.calibrate)
         _starts_within_screen(self.n_starts, self.n_screen)
         _one_of("curvature", self.curvature, CURVATURES)
         _one_of("covariance", self.covariance, COVARIANCES)

@@ -46,7 +46,7 @@ from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueE
 import irc_torchrl
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
 from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
-from irc_torchrl.checks import check_fields, count, real
+from irc_torchrl.checks import check_fields, count, non_negative, real
 from irc_torchrl.checks import positive as check_positive
 from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.files import write_json, write_text
@@ -259,24 +259,22 @@ class Firefly2DConfig:
             "evaluation.every": e.every,
         }
         check_positive(**positive)
-        for name, value in {
-            "ddpg.clone_updates": d.clone_updates,
-            "ddpg.critic_updates": d.critic_updates,
-            "ddpg.bc_weight": d.bc_weight,
-            "ddpg.bc_updates": d.bc_updates,
-            "ddpg.pre_activation_weight": d.pre_activation_weight,
-            "ddpg.smoothness_weight": d.smoothness_weight,
-            "ddpg.smoothness_sigma": d.smoothness_sigma,
-            "ddpg.policy_noise": d.policy_noise,
-            "ddpg.noise_clip": d.noise_clip,
-            "ddpg.sigma_init": d.sigma_init,
-            "ddpg.sigma_end": d.sigma_end,
-            "ddpg.warmup_sigma": d.warmup_sigma,
-        }.items():
-            if not value >= 0:
-                raise ValueError(f"config: {name} must be ≥ 0, got {value}")
-            if not math.isfinite(value):
-                raise ValueError(f"config: {name} must be finite, got {value}")
+        non_negative(
+            **{
+                "ddpg.clone_updates": d.clone_updates,
+                "ddpg.critic_updates": d.critic_updates,
+                "ddpg.bc_weight": d.bc_weight,
+                "ddpg.bc_updates": d.bc_updates,
+                "ddpg.pre_activation_weight": d.pre_activation_weight,
+                "ddpg.smoothness_weight": d.smoothness_weight,
+                "ddpg.smoothness_sigma": d.smoothness_sigma,
+                "ddpg.policy_noise": d.policy_noise,
+                "ddpg.noise_clip": d.noise_clip,
+                "ddpg.sigma_init": d.sigma_init,
+                "ddpg.sigma_end": d.sigma_end,
+                "ddpg.warmup_sigma": d.warmup_sigma,
+            }
+        )
         if d.sigma_end > d.sigma_init:
             raise ValueError(
                 f"config: ddpg.sigma_end={d.sigma_end} must not exceed "

@@ -51,7 +51,7 @@ from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
-from irc_torchrl.checks import check_fields
+from irc_torchrl.checks import check_fields, non_negative
 from irc_torchrl.config import (
     FitConfig,
     RecordingFitConfig,
@@ -174,13 +174,11 @@ class Recovery2DConfig:
         for name in ("threads", "n_trials"):
             if getattr(self, name) < 1:
                 raise ValueError(f"config: {name} must be ≥ 1, got {getattr(self, name)}")
-        for name in ("particles", "calibrate"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
+        non_negative(
+            particles=self.particles, calibrate=self.calibrate,
+            n_prior_agents=self.n_prior_agents, n_mistaken_agents=self.n_mistaken_agents,
+        )  # fmt: skip
         check_mixture(model or Firefly2DModel(), self.components, FINAL_STEPS)
-        for name in ("n_prior_agents", "n_mistaken_agents"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"config: {name} must be ≥ 0, got {getattr(self, name)}")
         if self.n_prior_agents + self.n_mistaken_agents < 1:
             raise ValueError("config: n_prior_agents + n_mistaken_agents must be ≥ 1")
         if not 0 < self.motor_noise < math.inf:
