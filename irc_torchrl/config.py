@@ -407,7 +407,8 @@ def _check_file_kind(config: Any, data: dict, path: Path) -> None:
     """Refuse a file written for another command, naming both commands, where the first key
     this command lacks would be reported alone: all its keys that command's, two or more not
     this one's, one of them no other command's (a misplaced key keeps the unknown-key error)."""
-    unknown = [key for key in data if key not in {f.name for f in dataclasses.fields(config)}]
+    names = {f.name for f in dataclasses.fields(config)}
+    unknown = [key for key in data if key not in names]
     if len(unknown) < 2:
         return
     commands = _file_commands()
