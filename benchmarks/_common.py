@@ -1,5 +1,6 @@
 """What the benchmark scripts share: argument types that refuse a bad size in one line before
-any work, and agents simulated into the fields an experimenter records."""
+any work, agents simulated into the fields an experimenter records, and ``irc recover``'s fit
+settings."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
+from irc_torchrl.algorithms.recover2d import Recovery2DConfig
 from irc_torchrl.algorithms.simulate import simulate_agents
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.model import TaskModel
@@ -27,6 +29,19 @@ def integer(least: int = 1) -> Callable[[str], int]:
         return value
 
     return parse
+
+
+def recover_fit_settings() -> dict:
+    """``fit_theta``'s settings in ``irc recover``'s default config (screened draws, starts,
+    iterations, curvature, covariance), read from it so that a benchmark times what it runs."""
+    fit = Recovery2DConfig().fit
+    return {
+        "n_screen": fit.n_screen,
+        "n_starts": fit.n_starts,
+        "max_iter": fit.max_iter,
+        "curvature": fit.curvature,
+        "covariance": fit.covariance,
+    }
 
 
 def recorded_agents(

@@ -14,12 +14,15 @@ compares returns with the ensemble and with the belief-pursuit controller at tho
 much each θ parameter moves the ensemble's actions and the controller's, and how wide the
 intervals of Algorithm 2 would come out on 20 agents acting with the ensemble (what it can read
 from them).
-When ``stable_baselines3`` imports, TD3 on the gymnasium adapter gets the same CPU time.
+When ``stable_baselines3`` imports, TD3 on the gymnasium adapter gets the same CPU time and the
+ensemble's evaluation; the specialists and TD3 take the first ensemble seed, and summary.json
+records the seeds and the stable-baselines3 version.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import math
 import statistics
 import sys
@@ -30,6 +33,7 @@ import torch
 from _common import integer
 
 from irc_torchrl.algorithms.ensemble import (
+    EvaluationConfig,
     evaluate_policy,
     make_model,
     theta_grid,
@@ -78,11 +82,14 @@ def ensemble_runs(seeds: list[int], overrides: list[str], out: Path) -> list[dic
     return rows
 
 
-def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> list[dict]:
+def specialists(
+    actor, overrides: list[str], n: int, trials: int, out: Path, seed: int
+) -> list[dict]:
     """Specialist vs ensemble vs pursuit at ``n`` θ from a Latin hypercube over the prior.
 
-    A specialist that never learned (return ≤ 0) is no reference: it is trained again with
-    the next seed, up to ``SPECIALIST_SEEDS`` seeds, and the first that learned is kept.
+    A specialist is trained with the ensemble's ``seed``; one that never learned (return ≤ 0)
+    is no reference: it is trained again with the next seed, up to ``SPECIALIST_SEEDS`` seeds,
+    and the first that learned is kept.
     """
     base = load_firefly2d_config(overrides=overrides)
     model = make_model(base)
@@ -94,12 +101,12 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
         def score(policy, at: torch.Tensor = theta) -> float:
             return evaluate_policy(model, policy, at[None], trials, seed=4242)["mean_return"]
 
-        for seed in range(base.seed, base.seed + SPECIALIST_SEEDS):
+        for tried in range(seed, seed + SPECIALIST_SEEDS):
             result = train_ensemble(
                 load_firefly2d_config(overrides=[*overrides, f"theta_fixed={values}"]),
-                out=out / f"specialist_{i}_seed_{seed}",
+                out=out / f"specialist_{i}_seed_{tried}",
                 progress=False,
-                seed=seed,
+                seed=tried,
             )
             specialist = score(result.actor)
             if specialist > 0:
@@ -112,7 +119,7 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
                 "theta": values,
                 "ensemble": ensemble,
                 "specialist": specialist,
-                "specialist_seed": seed,
+                "specialist_seed": tried,
                 "pursuit": pursuit,
                 "ratio": ratio,
             }
@@ -120,8 +127,11 @@ def specialists(actor, overrides: list[str], n: int, trials: int, out: Path) -> 
     return rows
 
 
-def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> list[dict] | None:
-    """TD3 (stable-baselines3) on the gymnasium adapter, evaluated at each CPU-second budget.
+def td3_run(
+    budgets: list[float], seed: int, model, evaluation: EvaluationConfig
+) -> list[dict] | None:
+    """TD3 (stable-baselines3) on the gymnasium adapter, evaluated at each CPU-second budget
+    on the ensemble's own evaluation (the config's θ grid, trials and seed).
 
     Evaluation CPU time is excluded from the budget, as it is for the ensemble.
     """
@@ -138,6 +148,7 @@ def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> lis
     rows: list[dict] = []
     pending = sorted(budgets)
     spent = {"eval": 0.0}
+    thetas = theta_grid(model.theta_space, evaluation.n_theta, evaluation.seed)
 
     def evaluate(cpu_s: float) -> None:
         begin = time.process_time()
@@ -145,7 +156,9 @@ def td3_run(budgets: list[float], seed: int, model, thetas: torch.Tensor) -> lis
             lambda f: agent.actor(f).clamp(-1, 1), in_keys=["features"], out_keys=["action"]
         )
         policy = TensorDictSequential(BeliefFeatures(model), act)
-        metrics = evaluate_policy(model, policy, thetas, 8)
+        metrics = evaluate_policy(
+            model, policy, thetas, evaluation.trials_per_theta, evaluation.seed
+        )
         rows.append({"cpu_s": cpu_s, "steps": agent.num_timesteps, **metrics})
         spent["eval"] += time.process_time() - begin
 
@@ -167,6 +180,14 @@ def ensemble_at(history: list[dict], cpu_s: float) -> tuple[float, float | None]
     seconds (success 0 and no return before its first)."""
     done = [row for row in history if row["train_cpu_s"] <= cpu_s + 1e-9]
     return (done[-1]["success_rate"], done[-1]["mean_return"]) if done else (0.0, None)
+
+
+def _version(package: str) -> str | None:
+    """The installed version of ``package`` (None: not installed), recorded beside its run."""
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return None
 
 
 def _seconds(value: float | None) -> str:
@@ -215,7 +236,7 @@ def main() -> None:
     )
     # 512 greedy trials per θ: with 64, one ensemble's ratio to a specialist read 0.85 where
     # 512 give 1.01, a noise larger than the 5% the comparison is about
-    rows = specialists(runs[0]["actor"], args.overrides, 5, 512, out)
+    rows = specialists(runs[0]["actor"], args.overrides, 5, 512, out, seeds[0])
     print(f"{'θ':>4} {'ensemble':>9} {'specialist':>10} {'seed':>4} {'pursuit':>8} {'ratio':>6}")
     for i, row in enumerate(rows):
         print(
@@ -243,7 +264,8 @@ def main() -> None:
     history = runs[0]["history"]
     budget = history[-1]["train_cpu_s"]
     budgets = [budget * f for f in (0.125, 0.25, 0.5, 1.0)]
-    td3 = td3_run(budgets, 0, model, grid)
+    config = load_firefly2d_config(overrides=args.overrides)
+    td3 = td3_run(budgets, seeds[0], model, config.evaluation)
     if td3:
         # returns too: where both still catch nothing, the return says which is nearer
         print(
@@ -262,6 +284,8 @@ def main() -> None:
     write_json(
         out / "summary.json",
         {
+            "seeds": seeds,
+            "stable_baselines3": _version("stable_baselines3"),
             "median": {k: None if math.isinf(v) else v for k, v in med.items()},
             "runs": [{k: v for k, v in r.items() if k not in ("actor", "model")} for r in runs],
             "specialists": rows,

@@ -22,7 +22,7 @@ import sys
 import time
 
 import torch
-from _common import integer, recorded_agents
+from _common import integer, recorded_agents, recover_fit_settings
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import fit_theta
@@ -43,7 +43,8 @@ def _task(name: str, actor_dtype: str, seed: int):
         return model, boltzmann_policy(model, q, 0.5), BoltzmannActionModel(q, 0.5), {}
     actor, model, _ = load_ensemble_policy("firefly2d")
     action_model = censored_action_model(actor, model, actor_dtype)
-    settings = {"n_screen": 16, "n_starts": 2, "curvature": "bfgs", "covariance": "sandwich"}
+    settings = recover_fit_settings()
+    del settings["max_iter"]  # --max-iter's
     return model, motor_noise_policy(actor, model.action_spec, 0.1), action_model, settings
 
 

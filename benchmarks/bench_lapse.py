@@ -19,7 +19,7 @@ import sys
 import time
 
 import torch
-from _common import integer, recorded_agents
+from _common import integer, recorded_agents, recover_fit_settings
 
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import fit_theta
@@ -77,10 +77,7 @@ def main() -> None:
         )
         loss = InverseRationalLoss(model, action_model, n_agents=args.agents, method="marginal")
         start = time.perf_counter()
-        result = fit_theta(
-            loss, held, n_screen=16, n_starts=2, max_iter=80, seed=args.seed, curvature="bfgs",
-            covariance="sandwich",
-        )  # fmt: skip
+        result = fit_theta(loss, held, seed=args.seed, **recover_fit_settings())
         seconds = time.perf_counter() - start
         truth = theta[:, free].double()
         # the median of an even number of agents is the mean of the middle two

@@ -11,7 +11,9 @@ import math
 
 import pytest
 import torch
-from torchrl.envs import TransformedEnv
+from torchrl.data import Bounded, OneHot
+from torchrl.envs import Compose, ExcludeTransform, TransformedEnv
+from torchrl.envs.utils import check_env_specs
 
 from irc_torchrl.algorithms.calibration import interval_pivots
 from irc_torchrl.algorithms.ensemble import (
@@ -27,9 +29,18 @@ from irc_torchrl.algorithms.recordings import fit_space
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.config import Firefly2DConfig
-from irc_torchrl.envs import EKFBelief, Firefly1DModel, Firefly2DEnv, Firefly2DModel
+from irc_torchrl.data.io import read_trials
+from irc_torchrl.data.trajectories import validate_trials
+from irc_torchrl.envs import (
+    EKFBelief,
+    Firefly1DEnv,
+    Firefly1DModel,
+    Firefly2DEnv,
+    Firefly2DModel,
+)
 from irc_torchrl.envs.belief import BeliefReward
 from irc_torchrl.envs.gym_adapter import Firefly2DGymEnv
+from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.modules.actor_critic import (
     FeaturePolicy,
     censored_action_model,
@@ -129,6 +140,30 @@ def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):
     for kwargs, message in cases:
         with pytest.raises((TypeError, ValueError), match=message):
             fit_theta(loss, held, max_iter=1, n_screen=2, n_starts=1, **kwargs)
+
+
+def test_the_loss_reads_one_agents_trials_as_fit_does_and_refuses_cut_trials(shipped, two_agents):
+    """Its forward refused ``[n_trials, T]`` that validate and fit_theta read as one agent's,
+    and a dict met an AttributeError. A collector's batch split into trajectories holds trials
+    that began in an earlier batch: scored as if from step 0, 7 such trials of a batch cost
+    more nats than its whole."""
+    actor, model = shipped
+    held, _ = two_agents
+    loss = InverseRationalLoss(model, censored_action_model(actor, model))
+    one = held[0]
+    assert torch.equal(loss(one)["log_likelihood"], loss(one.unsqueeze(0))["log_likelihood"])
+    with pytest.raises(TypeError, match=r"trials: expected a TensorDict \[n_agents"):
+        loss(dict(one.items()))
+    with pytest.raises(ValueError, match=r"expected batch dims \[1 agents, n_trials, T\] \(th"):
+        loss(held)
+    steps = torch.arange(one.shape[-1]).expand(*one.shape).unsqueeze(-1)
+    whole = loss(one.clone().set("step", steps))["log_likelihood"]
+    assert torch.equal(whole, loss(one)["log_likelihood"])
+    cut = one.clone().set("step", steps + 20)
+    with pytest.raises(ValueError, match=r"field 'step' at agent 0, trial 0, step 0 is 20; exp"):
+        loss(cut)
+    with pytest.raises(ValueError, match=r"field 'step' at agent 0, trial 0, step 0 is 20"):
+        fit_theta(loss, cut, max_iter=1, n_screen=1, n_starts=1)
 
 
 @pytest.mark.parametrize(
@@ -290,6 +325,44 @@ def test_a_float64_default_dtype_gives_the_same_numbers_in_float32():
     assert [x.dtype for x in numbers] == [x.dtype for x in expected]
     assert all(torch.equal(x, y) for x, y in zip(numbers, expected, strict=True))
     assert {x.dtype for x in numbers[5:]} == {torch.float32}
+
+
+@pytest.mark.parametrize("env_class", [Firefly1DEnv, Firefly2DEnv])
+def test_specs_hold_the_float32_the_envs_emit_under_a_float64_default(env_class):
+    """Their real-valued specs took torch's default dtype: check_env_specs failed, and a
+    collector's batch held float32 states beside float64 rewards."""
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        env = TransformedEnv(env_class(batch_size=[3], seed=0), EKFBelief(env_class.model_class()))
+        check_env_specs(env, seed=None)
+        rollout = env.rollout(4)
+    finally:
+        torch.set_default_dtype(default)
+    for key in ("state", ("next", "reward"), ("belief", "mean"), ("belief", "cov")):
+        assert rollout[key].dtype == torch.float32, key
+
+
+def test_a_belief_filter_refuses_an_env_whose_observation_it_cannot_read():
+    """With the observation excluded (or renamed) upstream, the 2D filter only predicted: its
+    velocity variances grew to the process noise's while the agent saw every step."""
+    model = Firefly2DModel()
+    env = TransformedEnv(
+        Firefly2DEnv(model=model, batch_size=[2], seed=0),
+        Compose(ExcludeTransform("observation"), EKFBelief(model)),
+    )
+    message = r"EKFBelief: the env has no 'observation' to filter with"
+    with pytest.raises(KeyError, match=message):
+        _ = env.observation_spec
+    with pytest.raises(KeyError, match=message):
+        env.rollout(2)
+
+
+def test_a_belief_filter_of_another_task_is_named_on_a_reset_before_any_spec_is_read():
+    """A reset before the specs were read failed with torch's 'expanded size' error."""
+    env = TransformedEnv(Firefly1DEnv(batch_size=[2], seed=0), EKFBelief(Firefly2DModel()))
+    with pytest.raises(ValueError, match=r"the env's 'state' is \[2, 1\], its model's"):
+        env.reset()
 
 
 def test_a_belief_filter_of_another_task_and_a_string_of_names_are_refused():
@@ -505,6 +578,33 @@ def test_the_ddpg_networks_refuse_a_task_of_discrete_actions(maker):
     """The 1D task's Categorical spec has no action dimension: an IndexError deep in MLP."""
     with pytest.raises(TypeError, match=rf"model: {maker.__name__} needs continuous actions"):
         maker(Firefly1DModel())
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [OneHot(3), Bounded(-1.0, 1.0, shape=()), Bounded(-1.0, 1.0, shape=(2, 2))],
+    ids=["one-hot", "scalar", "matrix"],
+)
+def test_a_task_of_actions_neither_an_index_nor_a_vector_is_refused_at_every_entry(
+    spec, tmp_path, two_agents
+):
+    """A one-hot spec failed inside the rollout ('CategoricalBox' has no 'low'), a matrix of
+    actions with a reshape error; the loss's network probe and the data read the two kinds
+    by different tests of the spec."""
+    model = Firefly1DModel()
+    model.action_spec = spec
+    message = r"model\.action_spec: expected Categorical\(n\) .* or a continuous spec of shape"
+    path = tmp_path / "agent.csv"
+    path.write_text("trial,time,x\n0,0.0,0.0\n")
+    entries = [
+        lambda: TaskEnv(model, batch_size=[2], seed=0),
+        lambda: InverseRationalLoss(model, torch.nn.Identity()),  # refused before its network
+        lambda: validate_trials(two_agents[0], model),
+        lambda: read_trials(path, model),
+    ]
+    for entry in entries:
+        with pytest.raises(ValueError, match=message):
+            entry()
 
 
 @pytest.mark.parametrize(

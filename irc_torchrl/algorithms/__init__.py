@@ -31,7 +31,12 @@ from irc_torchrl.algorithms.fit import (
     score_check,
 )
 from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
-from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.simulate import (
+    boltzmann_policy,
+    first_trial_mask,
+    motor_noise_policy,
+    simulate_agents,
+)
 
 __all__ = [
     "Calibration",
@@ -42,6 +47,7 @@ __all__ = [
     "critic_slices",
     "evaluate_policy",
     "expected_intervals",
+    "first_trial_mask",
     "fit_theta",
     "greedy_returns",
     "interval_pivots",

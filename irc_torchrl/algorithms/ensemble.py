@@ -52,7 +52,7 @@ from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.files import write_json, write_text
 from irc_torchrl.envs.belief import BeliefReward, EKFBelief
 from irc_torchrl.envs.firefly2d import Firefly2DModel, firefly2d_theta_space
-from irc_torchrl.envs.model import TaskModel, bounded_box
+from irc_torchrl.envs.model import TaskModel, bounded_box, continuous_actions
 from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.modules.actor_critic import ACTIVATIONS, make_actor, make_critic
 from irc_torchrl.modules.pursuit import BeliefPursuit
@@ -358,9 +358,7 @@ def _check_trainable(config: Firefly2DConfig, model: TaskModel) -> None:
             f"controller; expected 'random' for task {model.name!r}"
         )
     spec = model.action_spec
-    if not (spec.domain == "continuous" and spec.ndim == 1) or not bounded_box(
-        spec.space.low, spec.space.high
-    ):
+    if not continuous_actions(spec) or not bounded_box(spec.space.low, spec.space.high):
         raise ValueError(
             f"model.action_spec: expected a bounded box of continuous actions, shape [n] (the "
             f"actor squashes into it), got {type(spec).__name__} of {spec.dtype}, shape "

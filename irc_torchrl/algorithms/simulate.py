@@ -104,7 +104,8 @@ def _check_per_agent(policy: TensorDictSequential | None, shape: tuple[int, ...]
 
 
 def first_trial_mask(done: torch.Tensor) -> torch.Tensor:
-    """Steps up to and including the first ``done`` of each row of ``done [..., T]``."""
+    """Steps up to and including the first ``done`` of each row of ``done [..., T]``: a
+    rollout's first trial per env, as held trials' ``mask``."""
     before = torch.cumsum(done.long(), -1) - done.long()
     return before == 0
 

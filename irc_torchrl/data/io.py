@@ -38,7 +38,7 @@ from irc_torchrl.data.validate import (
     required_columns,
     split_trials,
 )
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, check_action_spec
 
 __all__ = [
     "SUFFIXES",
@@ -90,6 +90,7 @@ def read_trials(
         space's default), ``time`` (seconds since the trial's first sample) and ``trial``
         (the recording's trial number), padded to the longest trial by repeating its last step.
     """
+    check_action_spec(model)
     path = Path(path)
     source = str(path)
     if not path.exists():

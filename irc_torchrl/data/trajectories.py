@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical, TensorSpec
 
-from irc_torchrl.envs.model import TaskModel, action_in_spec
+from irc_torchrl.envs.model import TaskModel, action_in_spec, check_action_spec
 
 __all__ = ["TRIAL_KEYS", "validate_trials"]
 
@@ -30,11 +30,13 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
     """Return ``trials`` as ``[n_agents, n_trials, T]`` if they are well formed, else raise.
 
     Checks presence and shapes of every field, that ``mask`` marks a non-empty prefix of
-    each trial, that recorded steps are finite, that actions are floats for a continuous task
-    and lie in the task's action set, that no trial goes on after a chosen stop (the task
-    ends it there), that ``target`` and ``task_theta`` hold one value per trial (the fits read
-    its first step's), and that ``task_theta`` lies in the θ space.
+    each trial (and, where the env's ``step`` is kept, that it runs from the trial's start),
+    that recorded steps are finite, that actions are floats for a continuous task and lie in
+    the task's action set, that no trial goes on after a chosen stop (the task ends it
+    there), that ``target`` and ``task_theta`` hold one value per trial (the fits read its
+    first step's), and that ``task_theta`` lies in the θ space.
     """
+    check_action_spec(model)
     if not isinstance(trials, TensorDictBase):
         raise TypeError(
             f"trials: expected a TensorDict [n_agents, n_trials, T], got {type(trials).__name__}"
@@ -84,6 +86,7 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
         raise ValueError(
             f"trials: field 'mask' must mark a prefix of each trial; a gap ends at {_where(gaps)}"
         )
+    _refuse_cut_trials(trials, mask)
     if continuous and not trials["action"].is_floating_point():
         raise TypeError(
             f"trials: field 'action': expected a floating-point tensor (the task's actions are "
@@ -121,6 +124,21 @@ def validate_trials(trials: TensorDictBase, model: TaskModel) -> TensorDictBase:
                 "expected one value per trial"
             )
     return trials
+
+
+def _refuse_cut_trials(trials: TensorDictBase, mask: torch.Tensor) -> None:
+    """Where the env's step counter is kept, each trial's recorded steps are 0, 1, 2, ...: a
+    trial a collector's batch cut (``split_trajs``) starts later, and its belief, time and stop
+    rule would be read from a start it never had."""
+    if "step" not in trials.keys():
+        return
+    step = trials["step"].reshape(*mask.shape, -1)[..., 0]
+    late = (step != torch.arange(mask.shape[-1], device=mask.device)) & mask
+    if late.any():
+        raise ValueError(
+            f"trials: field 'step' at {_where(late)} is {int(step[late][0])}; expected each "
+            "trial from its start (0, 1, 2, ...): keep whole trials, not a batch's cut ones"
+        )
 
 
 def _refuse_steps_after_a_stop(trials: TensorDictBase, model: TaskModel) -> None:

@@ -136,6 +136,26 @@ class EKFBelief(Transform):
                     f"{sorted(map(str, present))}"
                 )
 
+    def _read(self) -> dict[str, int]:
+        """What the filter reads from the env, each with its last dimension: the observation
+        too where the task has one (without it the filter would predict and never update)."""
+        m = self.model
+        keys = {"state": m.state_dim, "target": m.target_dim, self.theta_key: m.theta_space.dim}
+        return keys | ({"observation": m.observation_dim} if m.observation_dim else {})
+
+    def _check(self, observation_spec: Composite) -> None:
+        """Refuse an env of another task (another size), or without what the filter reads."""
+        present = set(observation_spec.keys())
+        self._require(present, "state", "target", self.theta_key)
+        for key, dim in self._read().items():
+            spec = observation_spec.get(key, None)
+            if spec is not None and spec.shape[-1:] != (dim,):
+                raise ValueError(
+                    f"EKFBelief: the env's {key!r} is {list(spec.shape)}, its model's "
+                    f"({self.model.name}) [..., {dim}]; expected the env's own task model"
+                )
+        self._require(present, *self._read())
+
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
@@ -145,17 +165,22 @@ class EKFBelief(Transform):
                 tensordict_reset["target"],
                 tensordict_reset[self.theta_key],
             )
-        except KeyError:  # named only on failure: a reset is on the collector's hot path
-            self._require(tensordict_reset.keys(), "state", "target", self.theta_key)
+        except (KeyError, RuntimeError):  # named only on failure: a collector's hot path
+            if self.parent is not None:
+                self._check(self.parent.observation_spec)
             raise
         tensordict_reset.set(BELIEF_MEAN, mean)
         tensordict_reset.set(BELIEF_COV, cov)
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        observation = (
-            next_tensordict.get("observation", None) if self.model.observation_dim else None
-        )
+        observation = None
+        if self.model.observation_dim:
+            try:
+                observation = next_tensordict["observation"]
+            except KeyError:
+                self._require(next_tensordict.keys(), "observation")
+                raise
         mean, cov = ekf_step(
             self.model,
             tensordict[BELIEF_MEAN],
@@ -171,17 +196,11 @@ class EKFBelief(Transform):
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         batch, device = observation_spec.shape, observation_spec.device
         ds = self.model.state_dim
-        self._require(observation_spec.keys(), "state", "target", self.theta_key)
-        for key, dim in (("state", ds), (self.theta_key, self.model.theta_space.dim)):
-            spec = observation_spec[key]
-            if spec.shape[-1:] != (dim,):
-                raise ValueError(
-                    f"EKFBelief: the env's {key!r} is {list(spec.shape)}, its model's "
-                    f"({self.model.name}) [..., {dim}]; expected the env's own task model"
-                )
+        self._check(observation_spec)
+        dtype = observation_spec["state"].dtype  # the belief is the state's
         observation_spec["belief"] = Composite(
-            mean=Unbounded(shape=(*batch, ds), device=device),
-            cov=Unbounded(shape=(*batch, ds, ds), device=device),
+            mean=Unbounded(shape=(*batch, ds), dtype=dtype, device=device),
+            cov=Unbounded(shape=(*batch, ds, ds), dtype=dtype, device=device),
             shape=batch,
             device=device,
         )

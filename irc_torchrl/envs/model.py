@@ -16,7 +16,14 @@ from torchrl.data import Categorical, TensorSpec
 
 from irc_torchrl.theta import ThetaSpace
 
-__all__ = ["ABSURD", "TaskModel", "action_in_spec", "bounded_box", "continuous_actions"]
+__all__ = [
+    "ABSURD",
+    "TaskModel",
+    "action_in_spec",
+    "bounded_box",
+    "check_action_spec",
+    "continuous_actions",
+]
 
 #: a recorded rate this many times the largest gain of its unit in the θ space is taken as a
 #: unit mistake (:meth:`TaskModel.rate_limit`'s default)
@@ -231,4 +238,18 @@ def bounded_box(low: torch.Tensor, high: torch.Tensor) -> bool:
 
 def continuous_actions(spec: TensorSpec) -> bool:
     """Whether a task's action spec is a vector of continuous actions ``[da]`` (else discrete)."""
-    return len(spec.shape) == 1 and spec.dtype.is_floating_point
+    return spec.domain == "continuous" and len(spec.shape) == 1
+
+
+def check_action_spec(model: TaskModel) -> None:
+    """Refuse a task whose actions are neither one index among ``n`` (``Categorical(n)``) nor a
+    vector of continuous actions ``[da]``, the two kinds the env, the data and the inverse read
+    (a ``OneHot`` or a matrix of actions failed deep inside a rollout)."""
+    spec = model.action_spec
+    if (isinstance(spec, Categorical) and not spec.shape) or continuous_actions(spec):
+        return
+    raise ValueError(
+        f"model.action_spec: expected Categorical(n) (one index per step) or a continuous spec "
+        f"of shape [da], got {type(spec).__name__} of {spec.dtype}, shape {list(spec.shape)} "
+        f"(task {model.name!r})"
+    )

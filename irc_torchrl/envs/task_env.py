@@ -11,7 +11,7 @@ from torchrl.envs import EnvBase
 
 from irc_torchrl.checks import resolve_device
 from irc_torchrl.checks import seed as check_seed
-from irc_torchrl.envs.model import TaskModel, action_in_spec
+from irc_torchrl.envs.model import TaskModel, action_in_spec, check_action_spec
 
 __all__ = ["TaskEnv"]
 
@@ -57,6 +57,7 @@ class TaskEnv(EnvBase):
             if self.model_class is None:
                 raise TypeError("model: TaskEnv needs a TaskModel (or use a task's env subclass)")
             model = self.model_class()
+        check_action_spec(model)
         self.model = model
         self.theta = None if theta is None else self._check_theta(theta, "theta")
         self.task_theta = (
@@ -79,18 +80,22 @@ class TaskEnv(EnvBase):
 
     def _make_specs(self) -> None:
         m, batch, device = self.model, self.batch_size, self.device
+
+        def real(*shape: int) -> Unbounded:  # float32 whatever torch's default dtype
+            return Unbounded(shape=(*batch, *shape), dtype=torch.float32, device=device)
+
         observation = {
             "theta": m.theta_space.spec(batch, device),
             "task_theta": m.theta_space.spec(batch, device),
-            "state": Unbounded(shape=(*batch, m.state_dim), device=device),
-            "target": Unbounded(shape=(*batch, m.target_dim), device=device),
+            "state": real(m.state_dim),
+            "target": real(m.target_dim),
             "step": Bounded(0, m.max_steps, shape=(*batch, 1), dtype=torch.int64, device=device),
         }
         if m.observation_dim:
-            observation["observation"] = Unbounded(shape=(*batch, m.observation_dim), device=device)
+            observation["observation"] = real(m.observation_dim)
         self.observation_spec = Composite(observation, shape=batch, device=device)
         self.action_spec = m.action_spec.expand(*batch, *m.action_spec.shape).to(device)
-        self.reward_spec = Unbounded(shape=(*batch, 1), device=device)
+        self.reward_spec = real(1)
         self.done_spec = Composite(
             {
                 key: Bounded(0, 1, shape=(*batch, 1), dtype=torch.bool, device=device)

@@ -20,7 +20,7 @@ from torchrl.objectives import LossModule
 from irc_torchrl.checks import count
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, check_action_spec, continuous_actions
 from irc_torchrl.objectives.marginal import (
     FINAL_STEPS,
     MOMENT_RULES,
@@ -91,6 +91,7 @@ class InverseRationalLoss(LossModule):
         final_steps: int = FINAL_STEPS,
     ) -> None:
         super().__init__()
+        check_action_spec(model)
         n_agents = count("n_agents", n_agents)
         if world not in ("known", "shared"):
             raise ValueError(f"world: expected 'known' or 'shared', got {world!r}")
@@ -410,9 +411,10 @@ class InverseRationalLoss(LossModule):
                 f"trials: missing field(s) {missing}; this loss reads {list(named.values())} "
                 "(set_keys names them)"
             )
+        kept = {"step": trials.get("step")} if "step" in present else {}  # the env's counter
         validate_trials(  # under the default names, which its messages give
             TensorDict(
-                {name: trials.get(key) for name, key in named.items()},
+                {**{name: trials.get(key) for name, key in named.items()}, **kept},
                 batch_size=trials.batch_size,
             ),
             self.model,
@@ -459,16 +461,18 @@ class InverseRationalLoss(LossModule):
         return trials
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
-        """``loss_nll`` of held trials ``[n_agents, n_trials, T]`` and each agent's
-        ``log_likelihood``; malformed trials are refused first (:meth:`validate`)."""
-        if tensordict.ndim != 3 or tensordict.shape[0] != self.theta_free.shape[0]:
+        """``loss_nll`` of held trials ``[n_agents, n_trials, T]`` (one agent's may be
+        ``[n_trials, T]``) and each agent's ``log_likelihood``; malformed trials are refused
+        first (:meth:`validate`)."""
+        n_agents = self.theta_free.shape[0]
+        trials = self.validate(tensordict)
+        if trials.shape[0] != n_agents:
             raise ValueError(
-                f"trials: expected batch dims [{self.theta_free.shape[0]} agents, n_trials, T], "
-                f"got {list(tensordict.batch_size)}"
+                f"trials: expected batch dims [{n_agents} agents, n_trials, T] (this loss's "
+                f"n_agents), got {list(tensordict.batch_size)}"
             )
-        self.validate(tensordict)
         theta = self.theta(self.theta_free)
-        log_likelihood = self.log_likelihood(theta, self.nuisance, tensordict)
+        log_likelihood = self.log_likelihood(theta, self.nuisance, trials)
         return TensorDict(
             loss_nll=-log_likelihood.sum(), log_likelihood=log_likelihood.detach(), batch_size=[]
         )
@@ -488,7 +492,7 @@ def _check_action_model(model: TaskModel, action_model: nn.Module) -> None:
     features = torch.cat([theta.new_zeros(model.belief_feature_dim), theta]).unsqueeze(0)
     nuisance = probe.nuisance_init.to("cpu", torch.float64).unsqueeze(0)
     spec = model.action_spec
-    continuous = spec.dtype.is_floating_point
+    continuous = continuous_actions(spec)
     n = spec.shape[-1] if continuous else spec.n
     expected = (
         f"actions [1, {n}]" if continuous else f"probabilities of its {n} actions summing to 1"
