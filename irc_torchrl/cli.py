@@ -548,7 +548,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _check_arguments(args: argparse.Namespace) -> None:
     """Refuse a ``--seed`` outside [0, 2**63), a setting given twice, and an ``--out`` that
     cannot take this command's output (a file, or a folder holding another command's
-    ``summary.json``) before any work."""
+    ``summary.json``, or one irc did not write) before any work."""
     _check_settings_once(args)
     if getattr(args, "seed", None) is not None:
         from irc_torchrl.config import SEED_LIMIT
@@ -561,14 +561,23 @@ def _check_arguments(args: argparse.Namespace) -> None:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: expected a folder, {out} is a file")
-    try:
-        written_by = json.loads((out / "summary.json").read_text()).get("command")
-    except (OSError, ValueError, AttributeError):
+    path = out / "summary.json"
+    if not path.is_file():
         return
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, ValueError):
+        summary = None
+    written_by = summary.get("command") if isinstance(summary, dict) else None
+    if written_by not in _RESUME:
+        raise ValueError(
+            f"--out: {path} was not written by irc (it names no irc command), and irc "
+            f"{args.command} would overwrite it; choose another folder"
+        )
     # `irc demo --task firefly2d` is a short `irc recover` and writes its summary
     is_recovery = args.command == "demo" and getattr(args, "task", None) == "firefly2d"
     writes = "recover" if is_recovery else args.command
-    if written_by is not None and written_by != writes:
+    if written_by != writes:
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"
@@ -631,8 +640,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"irc {args.command}: error: {message}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: what was written before stays as it was
+        left = _RESUME[args.command].format(out=getattr(args, "out", None))
+        print(f"irc {args.command}: interrupted; {left}", file=sys.stderr)
+        return 130
     finally:
         warnings.formatwarning = formatwarning
+
+
+#: what an interrupted command leaves, and how to go on (its keys: irc's commands)
+_RESUME = {
+    "fit": "--out keeps its earlier files, and the fits that finished (--out/stages): "
+    "rerun with --resume to go on",
+    "recover": "--out keeps its earlier files, and the fits that finished (--out/stages): "
+    "rerun with --resume to go on",
+    "train": "--out keeps its last checkpoint (every checkpoint_every updates): rerun with "
+    "--resume {out}/checkpoint.pt to go on",
+    "simulate": "--out keeps its earlier recordings and summary",
+    "demo": "--out keeps its earlier files",
+    "report": "the figures already drawn stay as they were",
+}
 
 
 def _recording(item: str) -> bool:

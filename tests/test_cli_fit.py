@@ -397,10 +397,48 @@ def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_
     assert "holds the summary.json of irc recover, which irc demo" in capsys.readouterr().err
     assert main(["demo", "--task", "firefly2d", "--quiet", "--out", str(tmp_path / "demo")]) == 2
     assert "holds the summary.json of irc demo, which irc demo" in capsys.readouterr().err
+    # a lab's own summary.json was overwritten without a word
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    for text in ('{"experimenter": "me"}', "not json", '{"command": "analyse"}'):
+        (lab / "summary.json").write_text(text)
+        assert main([*fit, str(lab)]) == 2
+        assert capsys.readouterr().err.splitlines() == [
+            f"irc fit: error: --out: {lab / 'summary.json'} was not written by irc (it names no "
+            "irc command), and irc fit would overwrite it; choose another folder"
+        ]
+        assert [p.name for p in lab.iterdir()] == ["summary.json"]
+
+
+def test_a_fit_interrupted_while_drawing_leaves_the_earlier_fits_files(
+    fitted, simulated, tmp_path, monkeypatch, capsys
+):
+    """Stopped in its figures, a rerun left its summary and beliefs beside the earlier fit's
+    figures (and, into a new folder, a summary that passed for a finished run)."""
+    out = tmp_path / "fit"
+    shutil.copytree(fitted[0], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    draw = recordings.report_run
+
+    def stopped_after_drawing(folder):
+        draw(folder)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.report_run", stopped_after_drawing)
+    fit = ["fit", str(simulated / "agent0.csv"), "--quiet", "--method", "map", "--free", "g_v"]
+    fit += ["n_screen=2", "n_starts=1", "max_iter=2"]
+    for folder in (out, tmp_path / "new"):
+        assert main([*fit, "--out", str(folder)]) == 130
+        assert capsys.readouterr().err.splitlines() == [
+            "irc fit: interrupted; --out keeps its earlier files, and the fits that finished "
+            "(--out/stages): rerun with --resume to go on"
+        ]
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+    assert [p.name for p in (tmp_path / "new").iterdir()] == ["stages"]
 
 
 def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, capsys
 ):
     """Stopped after its first recording, a rerun left that one beside the earlier run's
     others with no summary: a mixture of two runs' agents. Now nothing of it is left."""
@@ -416,8 +454,10 @@ def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(
         write(trials, path, model)
 
     monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", stopped_at_the_second)
-    with pytest.raises(KeyboardInterrupt):
-        main([*simulate, "--seed", "1"])
+    assert main([*simulate, "--seed", "1"]) == 130
+    assert capsys.readouterr().err.splitlines() == [
+        "irc simulate: interrupted; --out keeps its earlier recordings and summary"
+    ]
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", write)
     assert main([*simulate, "--seed", "1"]) == 0

@@ -597,6 +597,16 @@ def _theta_column(name: str, value: float):
     return corrupt
 
 
+def _number_as_previous(trial: int):
+    """Trial ``trial`` numbered as the one before it (an export's counter that missed one)."""
+
+    def corrupt(columns):
+        columns["trial"][_rows(columns, trial)] = trial - 1
+        return columns
+
+    return corrupt
+
+
 def _no_rows(columns):
     return {k: v[:0] for k, v in columns.items()}
 
@@ -631,7 +641,13 @@ MALFORMED = [
     ("misnamed target column", "2d", ".npz", _rename("target_x", "targetX"), KeyError,
      r"column 'targetX' looks like a misnamed 'target_x'"),
     ("misnamed trial column", "1d", ".csv", _rename("trial", "trials"), KeyError,
-     r"missing column 'trial'; column 'trials' looks like a misnamed 'trial'"),
+     r"missing column 'trial'; column 'trials' looks like a misnamed 'trial' \(rename it, or "
+     r"declare trial_column=trials\); expected"),
+    ("misnamed time column", "2d", ".csv", _rename("time", "Time"), KeyError,
+     r"column 'Time' looks like a misnamed 'time' \(rename it, or declare time_column=Time\)"),
+    ("two trials under one number", "2d", ".csv", _number_as_previous(2), ValueError,
+     r"trial 1, field 'time': time goes from [\d.]+ s to 0 s at sample \d+; expected strictly "
+     r"increasing times \(it starts over: two trials under one number\?\)"),
     ("targets missing", "2d", ".csv", _rename("target_y", None), KeyError,
      r"missing column 'target_y'"),
     ("target missing in a trial", "2d", ".csv", _set(1, 0, "target_y", np.nan), ValueError,
@@ -793,6 +809,7 @@ def test_a_damaged_npz_archive_is_refused(tmp_path, model2d, trials2d):
 
 def test_a_csv_with_excels_byte_order_mark_reads_as_without(tmp_path, model2d, trials2d):
     plain = write_trials(trials2d, tmp_path / "plain.csv", model2d)
+    assert b"\r" not in plain.read_bytes()  # written with csv's default "\r\n" until 2026-12
     marked = tmp_path / "marked.csv"
     marked.write_bytes("\ufeff".encode() + plain.read_bytes())
     _assert_same(read_trials(marked, model2d), read_trials(plain, model2d))
@@ -960,6 +977,54 @@ def test_a_semicolon_export_and_a_time_in_ms_are_refused_saying_why(tmp_path, mo
         warnings.simplefilter("ignore")  # the resampling warning
         with pytest.raises(ValueError, match=r"a time in ms\? declare units\.time=ms"):
             read_trials(tmp_path / "ms.csv", model2d)
+
+
+@pytest.mark.parametrize("rate_hz", [1000, 2000])
+def test_a_time_in_ms_sampled_at_khz_is_refused_at_once_saying_why(
+    tmp_path, model2d, trials2d, rate_hz
+):
+    """At 1 kHz a time in ms steps "1 s", ten of the task's: every trial was resampled (25001
+    samples, 558 MB for a 10 MB file) after a warning, then refused with no word of the unit.
+    Now its length is read first; a trial too long in seconds too gets no such hint."""
+    row = {name: values[:1] for name, values in trials_to_columns(trials2d, model2d).items()}
+    n = 2 * rate_hz + 1  # a trial of 2 s
+    columns = {name: np.repeat(values, n) for name, values in row.items()}
+    columns["time"] = np.arange(n) * 1000.0 / rate_hz
+    _write_raw(columns, tmp_path / "khz.csv")
+    message = (
+        r"trial 0, field 'time': 20001 samples, each read as a model step; .* cut or drop "
+        r"longer trials \(it lasts 2000 s: a time in ms\? declare units\.time=ms\)$"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused before resampling says a word
+        with pytest.raises(ValueError, match=message):
+            read_trials(tmp_path / "khz.csv", model2d)
+    columns["time"] = np.arange(n) * 7.0 / (n - 1)  # 7 s in seconds: past the 6 s the task has
+    _write_raw(columns, tmp_path / "long.csv")
+    with pytest.raises(ValueError, match=r"71 samples, .* cut or drop longer trials$"):
+        read_trials(tmp_path / "long.csv", model2d)
+
+
+def test_trials_going_on_past_the_stop_are_read_with_a_warning(tmp_path, model2d, trials2d):
+    """A reward period exported with each trial (the agent standing still) was read without a
+    word: on the audit's recording, a log-likelihood of −491 where the cut trials give −197."""
+    columns = trials_to_columns(trials2d, model2d)
+    plain = _write_recording(columns, tmp_path / "cut.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # trials cut at their stop: nothing to say
+        read_trials(plain, model2d)
+    rows = _rows(columns, 0)
+    still = {name: np.repeat(values[rows[-1:]], 8) for name, values in columns.items()}
+    still["time"] = still["time"] + model2d.dt * np.arange(1, 9)
+    still["a_v"] = np.zeros(8)  # stopped, as at the stop itself
+    longer = {n: np.concatenate([v[rows], still[n], v[rows[-1] + 1 :]]) for n, v in columns.items()}
+    stop = columns["time"][rows[-1]]
+    message = (
+        rf"1 of {len(trials2d)} trials go on past the task's stop \(trial 0: 8 samples after its "
+        rf"stop at {stop:g} s\), each scored as the agent's choice to go on: cut each trial at"
+    )
+    with pytest.warns(UserWarning, match=message):
+        read_trials(_write_recording(longer, tmp_path / "longer.csv"), model2d)
 
 
 def test_a_recording_that_hardly_moves_or_jitters_is_not_taken_for_a_unit_mistake(

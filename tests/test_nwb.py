@@ -45,13 +45,14 @@ def _lab_nwb(
     cm_unit=False,
     rate=False,
     late=(),
+    targets_cm=False,
 ):
     """An NWB file laid out as the schema says, written the way a lab's rig might: positions
     in cm declared by NWB's own ``conversion`` (from an origin ``offset`` m away) or by their
     ``unit`` (``cm_unit``), samples through the gaps between trials, a series not exported,
     one a sample short on its own clock or as long but half a sample late (``late``), or every
     series sampled at a rate (its starting time and rate, no timestamps) with an outcome in
-    words in the trials table."""
+    words in the trials table; its targets in cm (``targets_cm``: the table has no unit)."""
     import datetime
     import uuid
 
@@ -68,7 +69,10 @@ def _lab_nwb(
     for label in dict.fromkeys(trial.tolist()):
         rows = trial == label
         stamps[rows] = start + columns["time"][rows]
-        per_trial = {n: float(columns[n][rows][0]) for n in ("target_x", "target_y")}
+        per_trial = {
+            n: float(columns[n][rows][0]) * (100.0 if targets_cm else 1.0)
+            for n in ("target_x", "target_y")
+        }
         if rate:
             per_trial["outcome"] = "missed"
         stop = float(stamps[rows][-1])
@@ -206,7 +210,24 @@ def test_units_for_an_nwb_file_and_a_series_off_the_clock_are_refused(tmp_path):
     columns = trials_to_columns(_numbered(model, [3.0, 5.0]), model)
     _lab_nwb(tmp_path / "cm.nwb", columns, cm_unit=True)
     with pytest.raises(ValueError, match=r"cm\.nwb: units: an NWB series carries its own unit"):
-        read_trials(tmp_path / "cm.nwb", model, units={"x": "cm"})
+        read_trials(tmp_path / "cm.nwb", model, units={"x": "cm", "target_x": "cm"})
+
+
+def test_an_nwb_files_targets_in_cm_are_read_as_declared(tmp_path):
+    """Its trials table carries no unit: targets in cm were refused as a unit mistake whose
+    advice (units.target_x=cm) was refused in turn, as units= for an NWB file."""
+    from irc_torchrl.data.io import trials_to_columns
+
+    model = Firefly2DModel()
+    columns = trials_to_columns(_numbered(model, [3.0, 5.0]), model)
+    _lab_nwb(tmp_path / "plain.nwb", columns)
+    _lab_nwb(tmp_path / "targets.nwb", columns, cm_unit=True, targets_cm=True)
+    with pytest.raises(ValueError, match=r"A unit mistake\? Declare it: units\.target_x=cm"):
+        read_trials(tmp_path / "targets.nwb", model)
+    back = read_trials(tmp_path / "targets.nwb", model, units={"target_x": "cm", "target_y": "cm"})
+    expected = read_trials(tmp_path / "plain.nwb", model)
+    torch.testing.assert_close(back["target"], expected["target"])
+    torch.testing.assert_close(back["state"], expected["state"])
     _lab_nwb(tmp_path / "late.nwb", columns, late=("a_w",))
     with pytest.raises(ValueError, match=r"'a_w' has (\d+) values at \1 times, not at the \1 "):
         read_trials(tmp_path / "late.nwb", model)

@@ -21,7 +21,7 @@ from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.recovery import format_parameters, recover_agents
 from irc_torchrl.algorithms.runtime import torch_settings
 from irc_torchrl.config import Firefly1DConfig, config_to_dict
-from irc_torchrl.data.files import write_json, write_npz, write_text
+from irc_torchrl.data.files import staged, write_json, write_npz, write_text
 from irc_torchrl.envs.firefly1d import Firefly1DModel
 from irc_torchrl.plots import demo_figures, plot_recovery
 
@@ -56,8 +56,6 @@ def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = Tru
 
 def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     model = Firefly1DModel()
-    write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
-
     start = time.perf_counter()
     with tqdm(
         total=config.q_iteration.rounds,
@@ -91,11 +89,14 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
         "dp_ratio_min_per_theta": float(per_theta.min()),
         "timings": {"train_s": train_s, **recovery["timings"]},
     }
-    write_json(out / "summary.json", summary)
     arrays = _figure_arrays(model, on_cpu, theta_grid, optimal, learned)
-    write_npz(out / "figures.npz", arrays)
-    plot_recovery(summary, out / "recovery.png", units=model.theta_space.units)
-    demo_figures(arrays, out)
+    # interrupted while writing, the folder keeps the earlier run's files, not a mixture
+    with staged(out) as staging:
+        write_text(staging / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
+        write_json(staging / "summary.json", summary)
+        write_npz(staging / "figures.npz", arrays)
+        plot_recovery(summary, staging / "recovery.png", units=model.theta_space.units)
+        demo_figures(arrays, staging)
     return summary
 
 

@@ -399,10 +399,12 @@ def fit_recordings(
     summary["state_units"] = [_in_metres(unit, config.units) for unit in model.state_units]
     stages.summarise(summary)
     earlier = _earlier_agents(out, "fit")
-    _write_beliefs(out / "beliefs.npz", labels, recordings, beliefs, per_trial[primary])
-    write_json(out / "summary.json", summary)
+    # interrupted while writing, the folder keeps the earlier run's files, not a mixture
+    with staged(out) as staging:
+        _write_beliefs(staging / "beliefs.npz", labels, recordings, beliefs, per_trial[primary])
+        write_json(staging / "summary.json", summary)
+        written = {path.name for path in report_run(staging)}
     stages.prune()
-    written = {path.name for path in report_run(out)}
     if earlier is not None:  # an earlier fit's figures this one did not draw again
         kinds, methods = ("recovery", "estimates"), ("", "_map", "_marginal")
         figures = [f"{kind}{method}.png" for kind in kinds for method in methods]

@@ -60,9 +60,9 @@ from irc_torchrl.config import (
     config_to_dict,
 )
 from irc_torchrl.data.files import (
-    atomic_dir,
     earlier_summary,
     remove_stale,
+    staged,
     write_json,
     write_text,
 )
@@ -618,25 +618,29 @@ def run_recovery(
         for bar in bars.values():
             bar.close()
     # written once the run has worked: a refused checkpoint or config leaves no folder behind
-    write_text(out / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
-    write_recovery(trials.cpu(), summary, out)
+    write_recovery(trials.cpu(), summary, out, config_to_dict(config))
     stages.prune()
     return summary
 
 
-def write_recovery(trials: TensorDict, summary: dict, out: str | Path) -> None:
-    """A recovery's ``summary.json``, ``trials/`` and figures, into ``out``."""
+def write_recovery(
+    trials: TensorDict, summary: dict, out: str | Path, config: dict | None = None
+) -> None:
+    """A recovery's ``summary.json``, ``trials/``, figures and (given) ``config.yaml``, into
+    ``out`` together: interrupted, the folder keeps the earlier run's, not a mixture."""
     out = Path(out)
     earlier = earlier_summary(out, "recover")
-    write_json(out / "summary.json", {"command": "recover", **summary})
-    with atomic_dir(out / "trials") as folder:
-        trials.memmap(folder)
-    units = summary.get("units") or Firefly2DModel().theta_space.units
-    written = [
-        plot_recovery(entry, out / f"recovery_{method}.png", title=method, units=units)
-        for method, entry in summary["methods"].items()
-    ]
-    written += belief_figures(trials, summary["methods"], out, **state_layout(summary))
+    with staged(out) as staging:
+        if config is not None:
+            write_text(staging / "config.yaml", yaml.safe_dump(config, sort_keys=False))
+        write_json(staging / "summary.json", {"command": "recover", **summary})
+        trials.memmap(staging / "trials")
+        units = summary.get("units") or Firefly2DModel().theta_space.units
+        written = [
+            plot_recovery(entry, staging / f"recovery_{method}.png", title=method, units=units)
+            for method, entry in summary["methods"].items()
+        ]
+        written += belief_figures(trials, summary["methods"], staging, **state_layout(summary))
     if earlier is not None:  # an earlier recovery's figures this one did not draw again
         kinds = ("recovery", "beliefs_overhead", "beliefs_time")
         figures = [f"{kind}_{method}.png" for kind in kinds for method in METHODS]

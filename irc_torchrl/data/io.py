@@ -33,6 +33,7 @@ from irc_torchrl.data.validate import (
     Trial,
     check_columns,
     check_kinematics,
+    check_stops,
     check_targets,
     check_trial,
     required_columns,
@@ -96,10 +97,12 @@ def read_trials(
     if not path.exists():
         raise FileNotFoundError(f"{source}: no such file or folder")
     reader = _reader(path)
-    if units and reader is _read_nwb:
+    of_series = sorted(set(units or {}) - set(model.target_names))
+    if of_series and reader is _read_nwb:
         raise ValueError(
             f"{source}: units: an NWB series carries its own unit (its unit and conversion), "
-            f"read as such; expected no units= for an NWB file, got {dict(units)}"
+            f"read as such; expected units= for the trials table's targets alone "
+            f"({', '.join(model.target_names)}) in an NWB file, got {dict(units)}"
         )
     columns = reader(path, model, time_column, trial_column)
     check_columns(columns, model, source, time_column, trial_column)
@@ -118,6 +121,7 @@ def read_trials(
     validate_trials(held, model)
     check_kinematics(held, model, source)
     check_targets(held, model, source)
+    check_stops(held, model, source)
     return held
 
 
@@ -298,7 +302,7 @@ def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
         for col in columns.values()
     ]
     with open(tmp, "w", newline="") as f:
-        writer = csv.writer(f)
+        writer = csv.writer(f, lineterminator="\n")  # csv's default is "\r\n", even here
         writer.writerow(names)
         writer.writerows(zip(*cells, strict=True))
 
@@ -398,15 +402,20 @@ def _on_model_grid(
     steps = np.concatenate([np.diff(t[time_column]) for _, t in trials])
     # trials of one sample each (an agent stopping at once) say nothing of the step
     step = float(np.median(steps)) if steps.size else model.dt
-    if abs(step - model.dt) <= RESAMPLE_TOLERANCE * model.dt:
-        resample = False
-    elif not resample:
+    on_grid = abs(step - model.dt) <= RESAMPLE_TOLERANCE * model.dt
+    resample = resample and not on_grid
+    for label, trial in trials:  # before any resampling: a time in ms made each 1000× longer
+        time = trial[time_column].astype(np.float64)
+        n = _grid_steps(time[-1] - time[0], model.dt) if resample else len(time)
+        if n > model.max_steps:
+            _refuse_long(source, label, time_column, n, time[-1] - time[0], model)
+    if not on_grid and not resample:
         warnings.warn(
             f"{source}: the median time step is {step:.6g} s but the model steps {model.dt} s; "
             "kept as recorded (resample=False)",
             stacklevel=3,
         )
-    else:
+    if resample:
         warnings.warn(
             f"{source}: resampled every trial from a median time step of {step:.6g} s "
             f"to the model's {model.dt} s (linear; discrete actions the previous sample)",
@@ -430,7 +439,7 @@ def _on_model_grid(
                 "one model step (fill or cut the gap)"
             )
         if resample:
-            grid = model.dt * np.arange(int(np.floor(time[-1] / model.dt + 1e-6)) + 1)
+            grid = model.dt * np.arange(_grid_steps(time[-1], model.dt))
             previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
             for i in gaps:  # the longest gap holding model steps no sample was near
                 inside = int(((grid > time[i] + step) & (grid < time[i + 1] - step)).sum())
@@ -441,17 +450,6 @@ def _on_model_grid(
                 for name, values in trial.items()
             }
             time = grid
-        if len(time) > model.max_steps:
-            hint = (
-                f" (the recording steps {step:.6g} s: a time in ms? declare units.{time_column}=ms)"
-                if resample and step > 10 * model.dt
-                else ""
-            )
-            raise ValueError(
-                f"{source}: trial {label}, field {time_column!r}: {len(time)} samples, each "
-                f"read as a model step; the task ends every trial within max_steps="
-                f"{model.max_steps} steps of {model.dt:g} s, so cut or drop longer trials{hint}"
-            )
         out.append((label, {**trial, time_column: time}))
     seconds, label, start, inside = longest
     if inside:
@@ -463,6 +461,27 @@ def _on_model_grid(
             stacklevel=3,
         )
     return out
+
+
+def _grid_steps(duration: float, dt: float) -> int:
+    """How many steps of ``dt`` a trial of ``duration`` seconds takes on the model's grid."""
+    return int(np.floor(duration / dt + 1e-6)) + 1
+
+
+def _refuse_long(
+    source: str, label: int | float, time_column: str, n: int, duration: float, model: TaskModel
+) -> None:
+    """Refuse a trial of ``n`` model steps, over the task's ``max_steps``; where it would be a
+    trial of the task were its time in ms (1000× too long, at whatever rate it was sampled:
+    at least a step, at most ``max_steps``), say so."""
+    longest = (model.max_steps - 1) * model.dt
+    in_ms = 1000 * model.dt <= duration <= 1000 * longest
+    hint = f" (it lasts {duration:.6g} s: a time in ms? declare units.{time_column}=ms)"
+    raise ValueError(
+        f"{source}: trial {label}, field {time_column!r}: {n} samples, each read as a model "
+        f"step; the task ends every trial within max_steps={model.max_steps} steps of "
+        f"{model.dt:g} s, so cut or drop longer trials{hint if in_ms else ''}"
+    )
 
 
 def _pack(

@@ -28,6 +28,7 @@ __all__ = [
     "WORLD_RATIO",
     "check_columns",
     "check_kinematics",
+    "check_stops",
     "check_targets",
     "check_trial",
     "required_columns",
@@ -39,6 +40,9 @@ THETA_PREFIX = "theta."
 
 Trial = dict[str, np.ndarray]
 
+#: recorded steps a trial may go on past the task's stop before a warning (a control
+#: resampled on its way down crosses the threshold a step or two before the recording ends)
+AFTER_STOP = 2
 #: the unit a recording most likely used by mistake, per kind of checked field
 _LIKELY_MISTAKE = {"distance": "cm", "distance/s": "cm/s", "rad/s": "deg/s"}
 #: how far the distance the positions (or angles) cover may differ from what their velocity
@@ -76,6 +80,9 @@ def check_columns(
             close = [n for n in unknown if n.lower() == name.lower()]  # `X` for `x`
             close = close or difflib.get_close_matches(name, unknown, n=1, cutoff=0.6)
             hint = f"; column {close[0]!r} looks like a misnamed {name!r}" if close else ""
+            setting = {time_column: "time_column", trial_column: "trial_column"}.get(name)
+            if close and setting:  # the recording's own name for it may be declared
+                hint += f" (rename it, or declare {setting}={close[0]})"
             raise KeyError(
                 f"{source}: missing column {name!r}{hint}; expected columns {required} "
                 f"(optional {THETA_PREFIX}<name> for θ: {', '.join(model.theta_space.names)})"
@@ -159,9 +166,11 @@ def check_trial(
     steps = np.diff(time)
     if (steps <= 0).any():
         i = int(np.flatnonzero(steps <= 0)[0])
+        # back to the trial's first time or before: another trial under the same number
+        again = " (it starts over: two trials under one number?)" if time[i + 1] <= time[0] else ""
         raise ValueError(
             f"{where}, field {time_column!r}: time goes from {time[i]:.6g} s to "
-            f"{time[i + 1]:.6g} s at sample {i + 1}; expected strictly increasing times"
+            f"{time[i + 1]:.6g} s at sample {i + 1}; expected strictly increasing times{again}"
         )
     _check_constant(where, trial, model)
     _check_actions(where, trial, model, time)
@@ -364,6 +373,29 @@ def _check_action_driven(
             warnings.warn(message, stacklevel=4)
         else:
             raise ValueError(message)
+
+
+def check_stops(held: TensorDictBase, model: TaskModel, source: str) -> None:
+    """Warn where trials go on more than :data:`AFTER_STOP` steps past the task's stop rule
+    (a reward period, the agent standing still): each such step is scored as the agent's
+    choice to go on, which its policy never made (a discrete task's are refused outright)."""
+    if isinstance(model.action_spec, Categorical):
+        return
+    mask = held["mask"]
+    step = torch.arange(mask.shape[-1]).expand(mask.shape).unsqueeze(-1)
+    stopped = model.stops(held["action"], step).squeeze(-1) & mask
+    first = stopped.long().argmax(-1)  # the first stop (0 where none: masked out below)
+    after = mask.sum(-1) - 1 - first
+    late = stopped.any(-1) & (after > AFTER_STOP)
+    if late.any():
+        i = int(late.nonzero()[0])
+        label, at = held["trial"][i, 0].item(), held["time"][i, first[i]].item()
+        warnings.warn(
+            f"{source}: {int(late.sum())} of {len(mask)} trials go on past the task's stop "
+            f"(trial {label}: {int(after[i])} samples after its stop at {at:.6g} s), each "
+            "scored as the agent's choice to go on: cut each trial at its stop",
+            stacklevel=3,
+        )
 
 
 def check_targets(held: TensorDictBase, model: TaskModel, source: str) -> None:
