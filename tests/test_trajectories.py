@@ -142,6 +142,24 @@ def test_staged_files_replace_their_namesakes_together_or_not_at_all(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b", "c", "keep.txt"]
 
 
+def test_a_staged_summary_moves_in_last(tmp_path, monkeypatch):
+    """The summary says a run finished: moved by name, a recovery's came before its trials/,
+    so a stop between the two left a summary over the earlier run's trials."""
+    from irc_torchrl.data import files
+
+    moved, move = [], files._move
+
+    def recorded(source, path):
+        moved.append(path.name)
+        move(source, path)
+
+    monkeypatch.setattr(files, "_move", recorded)
+    with staged(tmp_path) as staging:
+        for name in ("summary.json", "trials", "a.png"):
+            (staging / name).write_text(name)
+    assert moved == ["a.png", "trials", "summary.json"]
+
+
 def test_summaries_are_strict_json_with_null_for_numbers_that_are_not_finite(tmp_path):
     import json
 

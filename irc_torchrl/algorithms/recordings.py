@@ -148,7 +148,7 @@ def simulate_recordings(
         agents = []
         earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate") or []]
         # interrupted while writing, the folder keeps the earlier run's recordings and summary;
-        # the summary moves in with the recordings, last (the staged files move by name)
+        # the summary moves in with the recordings, last
         with staged(out) as staging:
             for i in tqdm(range(config.n_agents), desc="write recordings", disable=not progress):
                 name = f"agent{i}{FORMATS[file_format]}"

@@ -65,13 +65,14 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
 def staged(folder: str | Path) -> Iterator[Path]:
     """Yield an empty temporary folder inside ``folder``; each file or folder written there
     moves into ``folder`` (replacing its namesake) only if the whole block succeeds, so an
-    interrupted run leaves the set of files the run before it wrote, not a mixture of both."""
+    interrupted run leaves the set of files the run before it wrote, not a mixture of both.
+    A ``summary.json`` moves last: where it is the new run's, everything else is too."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=folder, prefix=".staged.", suffix=".tmp"))
     try:
         yield tmp
-        for entry in sorted(tmp.iterdir()):
+        for entry in sorted(tmp.iterdir(), key=lambda e: (e.name == "summary.json", e.name)):
             _move(entry, folder / entry.name)
     finally:
         shutil.rmtree(tmp)
