@@ -593,7 +593,7 @@ def test_a_task_of_actions_neither_an_index_nor_a_vector_is_refused_at_every_ent
     by different tests of the spec."""
     model = Firefly1DModel()
     model.action_spec = spec
-    message = r"model\.action_spec: expected Categorical\(n\) .* or a continuous spec of shape"
+    message = r"model\.action_spec: expected Categorical\(n\) .* or a floating-point spec of sh"
     path = tmp_path / "agent.csv"
     path.write_text("trial,time,x\n0,0.0,0.0\n")
     entries = [

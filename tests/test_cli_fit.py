@@ -24,7 +24,7 @@ from irc_torchrl.algorithms.calibration import Calibration, agent_intervals, int
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recordings import format_fit
 from irc_torchrl.algorithms.stages import Stages
-from irc_torchrl.cli import build_parser, main
+from irc_torchrl.cli import _check_arguments, build_parser, main
 from irc_torchrl.config import RecordingFitConfig
 from irc_torchrl.data.io import read_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
@@ -400,7 +400,8 @@ def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_
     # a lab's own summary.json was overwritten without a word
     lab = tmp_path / "lab"
     lab.mkdir()
-    for text in ('{"experimenter": "me"}', "not json", '{"command": "analyse"}'):
+    texts = ('{"experimenter": "me"}', "not json", '{"command": "analyse"}', '{"command": ["r"]}')
+    for text in texts:
         (lab / "summary.json").write_text(text)
         assert main([*fit, str(lab)]) == 2
         assert capsys.readouterr().err.splitlines() == [
@@ -408,6 +409,9 @@ def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_
             "irc command), and irc fit would overwrite it; choose another folder"
         ]
         assert [p.name for p in lab.iterdir()] == ["summary.json"]
+    # demo, recover and train named no command before 2026-12-05: their folders are irc's
+    (lab / "summary.json").write_text('{"task": "firefly2d", "seed": 0, "methods": {}}')
+    _check_arguments(build_parser().parse_args(["recover", "--out", str(lab)]))
 
 
 def test_a_fit_interrupted_while_drawing_leaves_the_earlier_fits_files(

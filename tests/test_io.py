@@ -999,10 +999,13 @@ def test_a_time_in_ms_sampled_at_khz_is_refused_at_once_saying_why(
         warnings.simplefilter("error")  # refused before resampling says a word
         with pytest.raises(ValueError, match=message):
             read_trials(tmp_path / "khz.csv", model2d)
-    columns["time"] = np.arange(n) * 7.0 / (n - 1)  # 7 s in seconds: past the 6 s the task has
-    _write_raw(columns, tmp_path / "long.csv")
-    with pytest.raises(ValueError, match=r"71 samples, .* cut or drop longer trials$"):
-        read_trials(tmp_path / "long.csv", model2d)
+    # too long in seconds: 7 s at this rate, or a 200 s block at the task's (not ms: the step
+    # of a clock in ms read as s is longer than the task's)
+    for name, duration, samples in (("long", 7.0, 71), ("block", 200.0, 2001)):
+        columns["time"] = np.arange(n) * duration / (n - 1)
+        _write_raw(columns, tmp_path / f"{name}.csv")
+        with pytest.raises(ValueError, match=rf"{samples} samples, .* cut or drop longer trials$"):
+            read_trials(tmp_path / f"{name}.csv", model2d)
 
 
 def test_trials_going_on_past_the_stop_are_read_with_a_warning(tmp_path, model2d, trials2d):
@@ -1020,8 +1023,8 @@ def test_trials_going_on_past_the_stop_are_read_with_a_warning(tmp_path, model2d
     longer = {n: np.concatenate([v[rows], still[n], v[rows[-1] + 1 :]]) for n, v in columns.items()}
     stop = columns["time"][rows[-1]]
     message = (
-        rf"1 of {len(trials2d)} trials go on past the task's stop \(trial 0: 8 samples after its "
-        rf"stop at {stop:g} s\), each scored as the agent's choice to go on: cut each trial at"
+        rf"1 of {len(trials2d)} trials go on past the task's stop \(trial 0: 8 steps after its "
+        rf"stop at {stop:g} s into it\), each scored as the agent's choice to go on: cut each"
     )
     with pytest.warns(UserWarning, match=message):
         read_trials(_write_recording(longer, tmp_path / "longer.csv"), model2d)

@@ -228,6 +228,19 @@ def test_an_nwb_files_targets_in_cm_are_read_as_declared(tmp_path):
     expected = read_trials(tmp_path / "plain.nwb", model)
     torch.testing.assert_close(back["target"], expected["target"])
     torch.testing.assert_close(back["state"], expected["state"])
+
+
+def test_an_nwb_file_too_long_is_not_sent_to_a_time_unit_it_cannot_take(tmp_path):
+    """NWB's times are seconds: the "time in ms?" hint sent the user to units.time=ms, which
+    an NWB file refuses."""
+    from irc_torchrl.data.io import trials_to_columns
+
+    model = Firefly2DModel()
+    columns = trials_to_columns(_numbered(model, [3.0, 5.0]), model)
+    columns["time"] = columns["time"] * 1000
+    _lab_nwb(tmp_path / "ms.nwb", columns)
+    with pytest.raises(ValueError, match=r"samples, .* so cut or drop longer trials$"):
+        read_trials(tmp_path / "ms.nwb", model)
     _lab_nwb(tmp_path / "late.nwb", columns, late=("a_w",))
     with pytest.raises(ValueError, match=r"'a_w' has (\d+) values at \1 times, not at the \1 "):
         read_trials(tmp_path / "late.nwb", model)

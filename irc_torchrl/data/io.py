@@ -116,7 +116,9 @@ def read_trials(
     ]
     for label, trial in trials:
         check_trial(label, trial, model, source, time_column)
-    trials = _on_model_grid(trials, model, source, time_column, trial_column, resample)
+    # an NWB file's times are seconds by definition: no unit of its own to declare
+    seconds = reader is _read_nwb
+    trials = _on_model_grid(trials, model, source, time_column, trial_column, resample, seconds)
     held = _pack(trials, model, time_column, trial_column)
     validate_trials(held, model)
     check_kinematics(held, model, source)
@@ -397,18 +399,22 @@ def _on_model_grid(
     time_column: str,
     trial_column: str,
     resample: bool,
+    seconds: bool = False,
 ) -> list[tuple[int | float, Trial]]:
-    """Each trial with its time from its start, resampled to ``model.dt`` where it differs."""
+    """Each trial with its time from its start, resampled to ``model.dt`` where it differs
+    (``seconds``: the format's times are seconds, with no unit to declare)."""
     steps = np.concatenate([np.diff(t[time_column]) for _, t in trials])
     # trials of one sample each (an agent stopping at once) say nothing of the step
     step = float(np.median(steps)) if steps.size else model.dt
     on_grid = abs(step - model.dt) <= RESAMPLE_TOLERANCE * model.dt
     resample = resample and not on_grid
+    # a clock in ms read as s steps slower than the task's: the step is 1000× too long
+    slow = not seconds and step > (1 + RESAMPLE_TOLERANCE) * model.dt
     for label, trial in trials:  # before any resampling: a time in ms made each 1000× longer
         time = trial[time_column].astype(np.float64)
         n = _grid_steps(time[-1] - time[0], model.dt) if resample else len(time)
         if n > model.max_steps:
-            _refuse_long(source, label, time_column, n, time[-1] - time[0], model)
+            _refuse_long(source, label, time_column, n, time[-1] - time[0], model, slow)
     if not on_grid and not resample:
         warnings.warn(
             f"{source}: the median time step is {step:.6g} s but the model steps {model.dt} s; "
@@ -469,13 +475,19 @@ def _grid_steps(duration: float, dt: float) -> int:
 
 
 def _refuse_long(
-    source: str, label: int | float, time_column: str, n: int, duration: float, model: TaskModel
+    source: str,
+    label: int | float,
+    time_column: str,
+    n: int,
+    duration: float,
+    model: TaskModel,
+    slow: bool,
 ) -> None:
-    """Refuse a trial of ``n`` model steps, over the task's ``max_steps``; where it would be a
-    trial of the task were its time in ms (1000× too long, at whatever rate it was sampled:
-    at least a step, at most ``max_steps``), say so."""
+    """Refuse a trial of ``n`` model steps, over the task's ``max_steps``; where the recording
+    steps slower than the task (``slow``) and the trial would be one of the task's were its
+    time in ms (1000× too long: at least a step, at most ``max_steps``), say so."""
     longest = (model.max_steps - 1) * model.dt
-    in_ms = 1000 * model.dt <= duration <= 1000 * longest
+    in_ms = slow and 1000 * model.dt <= duration <= 1000 * longest
     hint = f" (it lasts {duration:.6g} s: a time in ms? declare units.{time_column}=ms)"
     raise ValueError(
         f"{source}: trial {label}, field {time_column!r}: {n} samples, each read as a model "

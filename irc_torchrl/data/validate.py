@@ -392,7 +392,7 @@ def check_stops(held: TensorDictBase, model: TaskModel, source: str) -> None:
         label, at = held["trial"][i, 0].item(), held["time"][i, first[i]].item()
         warnings.warn(
             f"{source}: {int(late.sum())} of {len(mask)} trials go on past the task's stop "
-            f"(trial {label}: {int(after[i])} samples after its stop at {at:.6g} s), each "
+            f"(trial {label}: {int(after[i])} steps after its stop at {at:.6g} s into it), each "
             "scored as the agent's choice to go on: cut each trial at its stop",
             stacklevel=3,
         )

@@ -238,7 +238,7 @@ def bounded_box(low: torch.Tensor, high: torch.Tensor) -> bool:
 
 def continuous_actions(spec: TensorSpec) -> bool:
     """Whether a task's action spec is a vector of continuous actions ``[da]`` (else discrete)."""
-    return spec.domain == "continuous" and len(spec.shape) == 1
+    return len(spec.shape) == 1 and spec.dtype.is_floating_point
 
 
 def check_action_spec(model: TaskModel) -> None:
@@ -249,7 +249,7 @@ def check_action_spec(model: TaskModel) -> None:
     if (isinstance(spec, Categorical) and not spec.shape) or continuous_actions(spec):
         return
     raise ValueError(
-        f"model.action_spec: expected Categorical(n) (one index per step) or a continuous spec "
-        f"of shape [da], got {type(spec).__name__} of {spec.dtype}, shape {list(spec.shape)} "
-        f"(task {model.name!r})"
+        f"model.action_spec: expected Categorical(n) (one index per step) or a floating-point "
+        f"spec of shape [da], got {type(spec).__name__} of {spec.dtype}, shape "
+        f"{list(spec.shape)} (task {model.name!r})"
     )

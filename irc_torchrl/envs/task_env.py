@@ -80,9 +80,12 @@ class TaskEnv(EnvBase):
 
     def _make_specs(self) -> None:
         m, batch, device = self.model, self.batch_size, self.device
+        # the dtype the model computes in (the firefly tasks: float32 whatever torch's default)
+        theta = m.theta_space.default().unsqueeze(0)
+        dtype = m.initial_state(theta, torch.Generator().manual_seed(0))[0].dtype
 
-        def real(*shape: int) -> Unbounded:  # float32 whatever torch's default dtype
-            return Unbounded(shape=(*batch, *shape), dtype=torch.float32, device=device)
+        def real(*shape: int) -> Unbounded:
+            return Unbounded(shape=(*batch, *shape), dtype=dtype, device=device)
 
         observation = {
             "theta": m.theta_space.spec(batch, device),
