@@ -80,9 +80,11 @@ class TaskEnv(EnvBase):
 
     def _make_specs(self) -> None:
         m, batch, device = self.model, self.batch_size, self.device
-        # the dtype the model computes in (the firefly tasks: float32 whatever torch's default)
-        theta = m.theta_space.default().unsqueeze(0)
-        dtype = m.initial_state(theta, torch.Generator().manual_seed(0))[0].dtype
+        # the dtype the model computes in (the firefly tasks: float32 whatever torch's default),
+        # read off one draw on the CPU (not on a default device of the caller's)
+        with torch.device("cpu"):
+            theta = m.theta_space.default().unsqueeze(0)
+            dtype = m.initial_state(theta, torch.Generator().manual_seed(0))[0].dtype
 
         def real(*shape: int) -> Unbounded:
             return Unbounded(shape=(*batch, *shape), dtype=dtype, device=device)
