@@ -563,6 +563,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(f"--out: expected a folder, {out} is a file")
     path = out / "summary.json"
     if not path.is_file():
+        _check_stages(args, out)
         return
     try:
         summary = json.loads(path.read_text())
@@ -578,13 +579,31 @@ def _check_arguments(args: argparse.Namespace) -> None:
             f"--out: {path} was not written by irc (it names no irc command), and irc "
             f"{args.command} would overwrite it; choose another folder"
         )
-    # `irc demo --task firefly2d` is a short `irc recover` and writes its summary
-    is_recovery = args.command == "demo" and getattr(args, "task", None) == "firefly2d"
-    writes = "recover" if is_recovery else args.command
-    if written_by != writes:
+    if written_by != _writes(args):
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"
+        )
+
+
+def _writes(args: argparse.Namespace) -> str:
+    """The command whose summary (and stages) this one writes: `irc demo --task firefly2d` is
+    a short `irc recover` and writes its summary."""
+    is_recovery = args.command == "demo" and getattr(args, "task", None) == "firefly2d"
+    return "recover" if is_recovery else args.command
+
+
+def _check_stages(args: argparse.Namespace, out: Path) -> None:
+    """Refuse an ``--out`` holding only another command's stages (a run interrupted before its
+    summary): this command's run would prune them, hours of fits."""
+    from irc_torchrl.algorithms.stages import staged_by
+
+    owner = staged_by(out / "stages")
+    if owner is not None and owner != _writes(args):
+        raise ValueError(
+            f"--out: {out}/stages holds the finished fits of an interrupted irc {owner}, which "
+            f"irc {args.command} would remove; choose another folder (or go on with irc {owner} "
+            "--resume)"
         )
 
 

@@ -438,7 +438,15 @@ def test_a_fit_interrupted_while_drawing_leaves_the_earlier_fits_files(
             "(--out/stages): rerun with --resume to go on"
         ]
     assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
-    assert [p.name for p in (tmp_path / "new").iterdir()] == ["stages"]
+    new = tmp_path / "new"
+    assert [p.name for p in new.iterdir()] == ["stages"]
+    # its finished fits are the fit's to resume: another command would prune them
+    assert main(["recover", "--quiet", "--out", str(new)]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"irc recover: error: --out: {new}/stages holds the finished fits of an interrupted irc "
+        "fit, which irc recover would remove; choose another folder (or go on with irc fit "
+        "--resume)"
+    ]
 
 
 def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(

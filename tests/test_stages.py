@@ -22,7 +22,7 @@ from irc_torchrl.algorithms import recordings, recover2d
 from irc_torchrl.algorithms import stages as stages_module
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recovery_stages, run_recovery
-from irc_torchrl.algorithms.stages import Stages, format_resumed, stage_key
+from irc_torchrl.algorithms.stages import Stages, format_resumed, stage_key, staged_by
 from irc_torchrl.checkpoint import read_weights, resolve_checkpoint
 from irc_torchrl.cli import main
 from irc_torchrl.config import FitConfig, RecordingFitConfig
@@ -449,9 +449,10 @@ def test_an_interrupted_recovery_resumes_to_the_uninterrupted_numbers(
     extended = run_recovery(more, tmp_path / "run", show_progress=False, resume=True)
     assert fits == ["map", "marginal"] * 2
     assert extended["methods"]["marginal"]["calibrated"]["n_datasets"] == 3
-    stages = sorted(p.stem for p in (tmp_path / "run" / "stages").iterdir())
+    stages = sorted(p.stem for p in (tmp_path / "run" / "stages").glob("*.pt"))
     names = ("fit", "calibration1", "calibration2", "calibration3")
     assert stages == sorted(f"{s}_{m}" for s in names for m in ("map", "marginal"))
+    assert staged_by(tmp_path / "run" / "stages") == "recover"  # another command refuses them
 
 
 def test_a_recovery_of_other_settings_refits_and_leaves_only_its_own_stages(tmp_path, monkeypatch):
@@ -473,7 +474,7 @@ def test_a_recovery_of_other_settings_refits_and_leaves_only_its_own_stages(tmp_
     assert recovery_stages(second, tmp_path).key != recovery_stages(first, tmp_path).key
     summary = run_recovery(second, tmp_path, show_progress=False, resume=True)
     assert len(methods) == 14 and summary["resumed"] == []
-    assert sorted(p.stem for p in (tmp_path / "stages").iterdir()) == sorted(
+    assert sorted(p.stem for p in (tmp_path / "stages").glob("*.pt")) == sorted(
         f"{s}_{m}" for s in ("fit", "calibration1", "calibration2") for m in ("map", "marginal")
     )
     resumed = run_recovery(second, tmp_path, show_progress=False, resume=True)

@@ -436,7 +436,8 @@ def recording_stages(
     are named by theirs."""
     settings = {"config": fit_settings(config), "free": list(free), "seed": seed}
     settings["device"] = str(torch.device(device))
-    return Stages(Path(out) / "stages", stage_key(settings, checkpoint, model, recordings), resume)
+    key = stage_key(settings, checkpoint, model, recordings)
+    return Stages(Path(out) / "stages", key, resume, command="fit")
 
 
 def _by_trial_count(recordings: list[TensorDict]) -> dict[int, list[int]]:

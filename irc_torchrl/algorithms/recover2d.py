@@ -585,7 +585,7 @@ def recovery_stages(
     settings = fit_settings(config)
     del settings["checkpoint"]  # its contents, not its path
     key = stage_key(settings, resolve_checkpoint(config.checkpoint), model)
-    return Stages(Path(out) / "stages", key, resume)
+    return Stages(Path(out) / "stages", key, resume, command="recover")
 
 
 def run_recovery(

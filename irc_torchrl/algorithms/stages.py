@@ -35,10 +35,10 @@ import irc_torchrl
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.checkpoint import read_weights
 from irc_torchrl.config import config_to_dict
-from irc_torchrl.data.files import atomic_path
+from irc_torchrl.data.files import atomic_path, write_text
 from irc_torchrl.envs.model import TaskModel
 
-__all__ = ["AFTER_FITS", "Stages", "fit_settings", "format_resumed", "stage_key"]
+__all__ = ["AFTER_FITS", "Stages", "fit_settings", "format_resumed", "stage_key", "staged_by"]
 
 #: the settings that act only once the fits are done (a check of them, how many datasets
 #: calibrate their intervals and how the factors read their tails): a rerun that changes them
@@ -225,19 +225,38 @@ def _code_digest() -> str:
     return digest.hexdigest()
 
 
+#: the file in a stages folder naming the command whose stages it holds
+COMMAND_FILE = "command"
+
+
+def staged_by(folder: str | Path) -> str | None:
+    """The command whose stages ``folder`` holds (``None``: none named, or no folder)."""
+    try:
+        return (Path(folder) / COMMAND_FILE).read_text().strip() or None
+    except OSError:
+        return None
+
+
 class Stages:
     """The stages of one run in ``folder`` (``None``: none kept), under the run's ``key``.
 
     With ``resume``, a stage an earlier run of the same key finished is read instead of
-    fitted (or checked); ``reused`` names those, in order.
+    fitted (or checked); ``reused`` names those, in order. ``command`` (``irc fit``'s or
+    ``recover``'s) is named in the folder beside the first stage saved, so that another
+    command refuses the folder rather than prune an interrupted run's stages.
     """
 
     def __init__(
-        self, folder: str | Path | None = None, key: str = "", resume: bool = False
+        self,
+        folder: str | Path | None = None,
+        key: str = "",
+        resume: bool = False,
+        command: str = "",
     ) -> None:
         self.folder = None if folder is None else Path(folder)
         self.key = key
         self.resume = resume
+        self.command = command
         self.reused: list[str] = []
 
     def include(self, data: Iterable[TensorDictBase]) -> None:
@@ -291,6 +310,8 @@ class Stages:
             stage = {"key": self.key, "seconds": seconds, "result": state(result)}
             with atomic_path(self.folder / f"{name}.pt") as tmp:
                 torch.save(stage, tmp)
+            if self.command and staged_by(self.folder) != self.command:
+                write_text(self.folder / COMMAND_FILE, self.command + "\n")
         return result, seconds
 
     def prune(self) -> None:
