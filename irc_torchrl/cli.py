@@ -671,12 +671,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         warnings.formatwarning = formatwarning
 
 
+#: what an interrupted fit (irc fit, irc recover) leaves, and how to go on
+_STAGED = (
+    "--out keeps its earlier files, and the fits that finished (--out/stages): rerun with "
+    "--resume to go on"
+)
 #: what an interrupted command leaves, and how to go on (its keys: irc's commands)
 _RESUME = {
-    "fit": "--out keeps its earlier files, and the fits that finished (--out/stages): "
-    "rerun with --resume to go on",
-    "recover": "--out keeps its earlier files, and the fits that finished (--out/stages): "
-    "rerun with --resume to go on",
+    "fit": _STAGED,
+    "recover": _STAGED,
     "train": "--out keeps the last checkpoint.pt written there (every checkpoint_every "
     "updates; an earlier run's before the first): rerun with --resume {out}/checkpoint.pt to go "
     "on from it",

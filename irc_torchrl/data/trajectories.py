@@ -14,7 +14,7 @@ from torchrl.data import Categorical, TensorSpec
 
 from irc_torchrl.envs.model import TaskModel, action_in_spec, check_action_spec
 
-__all__ = ["TRIAL_KEYS", "validate_trials"]
+__all__ = ["TRIAL_KEYS", "recorded_stops", "validate_trials"]
 
 #: the fields every held trial has
 TRIAL_KEYS = ("state", "action", "target", "mask", "task_theta")
@@ -141,18 +141,23 @@ def _refuse_cut_trials(trials: TensorDictBase, mask: torch.Tensor) -> None:
         )
 
 
+def recorded_stops(trials: TensorDictBase, model: TaskModel) -> torch.Tensor:
+    """The recorded steps ``[..., T]`` at which the task's stop rule ends the trial."""
+    mask = trials["mask"]
+    step = torch.arange(mask.shape[-1], device=mask.device).expand(mask.shape).unsqueeze(-1)
+    return model.stops(trials["action"], step).squeeze(-1) & mask
+
+
 def _refuse_steps_after_a_stop(trials: TensorDictBase, model: TaskModel) -> None:
     """A chosen stop (a discrete action) ends the trial: steps after it cannot be the task's.
 
-    Continuous actions are left alone: a recording resampled to the task's step interpolates
-    its controls, and can cross the stop threshold on the last steps before the trial ends.
+    Continuous actions are left alone here (a recording read with them past a stop is warned
+    of): one resampled to the task's step interpolates its controls, and can cross the stop
+    threshold on the last steps before the trial ends.
     """
     if not isinstance(model.action_spec, Categorical):
         return
-    mask = trials["mask"]
-    step = torch.arange(mask.shape[-1], device=mask.device).expand(mask.shape).unsqueeze(-1)
-    stopped = model.stops(trials["action"], step).squeeze(-1)
-    on = stopped[..., :-1] & mask[..., 1:]
+    on = recorded_stops(trials, model)[..., :-1] & trials["mask"][..., 1:]
     if on.any():
         raise ValueError(
             f"trials: field 'action' stops at {_where(on)} yet 'mask' marks the next step; the "

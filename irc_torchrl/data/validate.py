@@ -19,6 +19,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical
 
+from irc_torchrl.data.trajectories import recorded_stops
 from irc_torchrl.envs.model import ABSURD, TaskModel, action_in_spec
 
 __all__ = [
@@ -381,9 +382,7 @@ def check_stops(held: TensorDictBase, model: TaskModel, source: str) -> None:
     choice to go on, which its policy never made (a discrete task's are refused outright)."""
     if isinstance(model.action_spec, Categorical):
         return
-    mask = held["mask"]
-    step = torch.arange(mask.shape[-1]).expand(mask.shape).unsqueeze(-1)
-    stopped = model.stops(held["action"], step).squeeze(-1) & mask
+    mask, stopped = held["mask"], recorded_stops(held, model)
     first = stopped.long().argmax(-1)  # the first stop (0 where none: masked out below)
     after = mask.sum(-1) - 1 - first
     late = stopped.any(-1) & (after > AFTER_STOP)

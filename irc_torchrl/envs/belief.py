@@ -145,16 +145,16 @@ class EKFBelief(Transform):
 
     def _check(self, observation_spec: Composite) -> None:
         """Refuse an env of another task (another size), or without what the filter reads."""
-        present = set(observation_spec.keys())
+        present, read = set(observation_spec.keys()), self._read()
         self._require(present, "state", "target", self.theta_key)
-        for key, dim in self._read().items():
+        for key, dim in read.items():
             spec = observation_spec.get(key, None)
             if spec is not None and spec.shape[-1:] != (dim,):
                 raise ValueError(
                     f"EKFBelief: the env's {key!r} is {list(spec.shape)}, its model's "
                     f"({self.model.name}) [..., {dim}]; expected the env's own task model"
                 )
-        self._require(present, *self._read())
+        self._require(present, *read)
 
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
