@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from numbers import Integral, Real
 from typing import Any
 
@@ -52,18 +52,20 @@ def real(field: str, value: object) -> float:
 
 def positive(**values: float) -> None:
     """Refuse a config value that is not a finite number > 0 (``.inf`` would pass ``> 0``)."""
-    for name, value in values.items():
-        if not value > 0:
-            raise ValueError(f"config: {name} must be positive, got {value}")
-        if not math.isfinite(value):
-            raise ValueError(f"config: {name} must be finite, got {value}")
+    _finite(values, "positive", lambda value: value > 0)
 
 
 def non_negative(**values: float) -> None:
     """Refuse a config value that is not a finite number ≥ 0."""
+    _finite(values, "≥ 0", lambda value: value >= 0)
+
+
+def _finite(values: Mapping[str, float], what: str, holds: Callable[[float], bool]) -> None:
+    """Refuse a config value for which ``holds`` fails (NaN fails every comparison), saying it
+    must be ``what``, or that is infinite."""
     for name, value in values.items():
-        if not value >= 0:
-            raise ValueError(f"config: {name} must be ≥ 0, got {value}")
+        if not holds(value):
+            raise ValueError(f"config: {name} must be {what}, got {value}")
         if not math.isfinite(value):
             raise ValueError(f"config: {name} must be finite, got {value}")
 

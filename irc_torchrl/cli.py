@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Sequence
 from functools import partial
@@ -656,6 +658,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.overrides = [*args.overrides, *extra]
     formatwarning = warnings.formatwarning  # catch_warnings does not restore it
     warnings.formatwarning = partial(_format_warning, args.command)
+    handles_signals = threading.current_thread() is threading.main_thread()
+    if handles_signals:
+        terminate = signal.signal(signal.SIGTERM, _terminated)
     try:
         _check_arguments(args)
         return args.run(args)
@@ -663,12 +668,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"irc {args.command}: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C: what was written before stays as it was
+    except KeyboardInterrupt as stop:  # Ctrl-C or kill: what was written before stays as it was
         left = _RESUME[args.command].format(out=getattr(args, "out", None))
-        print(f"irc {args.command}: interrupted; {left}", file=sys.stderr)
-        return 130
+        how, status = ("terminated", 143) if isinstance(stop, _Terminated) else ("interrupted", 130)
+        print(f"irc {args.command}: {how}; {left}", file=sys.stderr)
+        return status
     finally:
         warnings.formatwarning = formatwarning
+        if handles_signals:
+            signal.signal(signal.SIGTERM, terminate)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a scheduler's time limit) raised as an interrupt, so that the
+    same cleanup runs as on Ctrl-C: staging folders and temporaries removed, nothing half
+    written."""
+
+
+def _terminated(_signum: int, _frame: object) -> None:
+    raise _Terminated
 
 
 #: what an interrupted fit (irc fit, irc recover) leaves, and how to go on

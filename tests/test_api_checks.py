@@ -11,8 +11,16 @@ import math
 
 import pytest
 import torch
+from conftest import default_dtype
 from torchrl.data import Bounded, OneHot
-from torchrl.envs import Compose, ExcludeTransform, TransformedEnv
+from torchrl.envs import (
+    Compose,
+    DTypeCastTransform,
+    ExcludeTransform,
+    ObservationNorm,
+    StepCounter,
+    TransformedEnv,
+)
 from torchrl.envs.utils import check_env_specs
 
 from irc_torchrl.algorithms.calibration import interval_pivots
@@ -315,13 +323,9 @@ def test_a_float64_default_dtype_gives_the_same_numbers_in_float32():
     """Under it the shipped policy came back in float64 and a rollout failed deep in torch, and
     TorchRL's noise modules drew other numbers from the same seed."""
     expected = _seeded_numbers()
-    default = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    try:
+    with default_dtype(torch.float64):
         numbers = _seeded_numbers()
         assert torch.get_default_dtype() == torch.float64  # the caller's, restored
-    finally:
-        torch.set_default_dtype(default)
     assert [x.dtype for x in numbers] == [x.dtype for x in expected]
     assert all(torch.equal(x, y) for x, y in zip(numbers, expected, strict=True))
     assert {x.dtype for x in numbers[5:]} == {torch.float32}
@@ -331,14 +335,10 @@ def test_a_float64_default_dtype_gives_the_same_numbers_in_float32():
 def test_specs_hold_the_float32_the_envs_emit_under_a_float64_default(env_class):
     """Their real-valued specs took torch's default dtype: check_env_specs failed, and a
     collector's batch held float32 states beside float64 rewards."""
-    default = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    try:
+    with default_dtype(torch.float64):
         env = TransformedEnv(env_class(batch_size=[3], seed=0), EKFBelief(env_class.model_class()))
         check_env_specs(env, seed=None)
         rollout = env.rollout(4)
-    finally:
-        torch.set_default_dtype(default)
     for key in ("state", ("next", "reward"), ("belief", "mean"), ("belief", "cov")):
         assert rollout[key].dtype == torch.float32, key
 
@@ -356,6 +356,30 @@ def test_a_belief_filter_refuses_an_env_whose_observation_it_cannot_read():
         _ = env.observation_spec
     with pytest.raises(KeyError, match=message):
         env.rollout(2)
+
+
+@pytest.mark.parametrize("rewritten", ["observation", "state", "target"])
+def test_a_belief_filter_refuses_a_transform_before_it_that_rewrites_what_it_reads(rewritten):
+    """An ObservationNorm before the filter fed it normalised observations, which it weighed
+    as the task's own (the filter cannot tell); now refused at a reset and at the spec. A cast
+    or a transform writing other keys passes."""
+    model = Firefly2DModel()
+    norm = ObservationNorm(loc=0.0, scale=2.0, in_keys=[rewritten])
+    env = TransformedEnv(Firefly2DEnv(model=model, batch_size=[2], seed=0), norm)
+    env.append_transform(EKFBelief(model))
+    message = rf"^EKFBelief: ObservationNorm before it rewrites '{rewritten}', which the filter"
+    with pytest.raises(ValueError, match=message):
+        env.reset()
+    with pytest.raises(ValueError, match=message):
+        _ = env.observation_spec
+    for harmless in (
+        DTypeCastTransform(torch.float32, torch.float64, ["observation"]),
+        StepCounter(),
+    ):
+        env = TransformedEnv(
+            Firefly2DEnv(model=model, batch_size=[2], seed=0), Compose(harmless, EKFBelief(model))
+        )
+        assert env.observation_spec["belief", "mean"].shape == (2, 5)
 
 
 def test_a_belief_filter_of_another_task_is_named_on_a_reset_before_any_spec_is_read():

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import default_dtype
 
 import irc_torchrl
 from irc_torchrl.algorithms.ensemble import (
@@ -482,12 +483,8 @@ def test_training_under_a_float64_default_dtype_trains_the_same_float32_networks
     """TorchRL's noise module draws in the default dtype: under float64 the run failed (float64
     actions into the float32 critic); it runs in float32 and restores the caller's default."""
     result, _ = trained
-    default = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    try:
+    with default_dtype(torch.float64):
         again = train_ensemble(tiny(), out=tmp_path, progress=False)
         assert torch.get_default_dtype() == torch.float64
-    finally:
-        torch.set_default_dtype(default)
     for name, value in result.actor.state_dict().items():
         assert torch.equal(again.actor.state_dict()[name], value), name

@@ -10,7 +10,9 @@ obs_sigma_v (0.64 against 0.6) is fitted but not asserted.
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -375,6 +377,23 @@ def test_a_recording_too_short_for_the_sandwich_is_named_before_any_fit(tmp_path
     assert not (tmp_path / "out").exists()
 
 
+def test_a_recording_too_short_to_fit_is_named_before_any_fit(simulated, tmp_path, capsys):
+    """A one-row recording was fitted, 8 of θ from its 2 action values, ending only with 'NOT
+    converged'; now refused, naming the file and how many values it holds."""
+    header, first, second, *_ = (simulated / "agent0.csv").read_text().splitlines()
+    short = tmp_path / "one_row.csv"
+    short.write_text(f"{header}\n{first}\n")
+    fit = ["fit", str(short), "--out", str(tmp_path / "out"), "--quiet"]
+    assert main(fit) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"irc fit: error: {short}: 2 recorded action values for 11 fitted coordinates (8 of θ, "
+        "3 nuisance): too few to fit; expected more trials, or fewer free parameters (--free)"
+    ]
+    assert not (tmp_path / "out").exists()
+    short.write_text(f"{header}\n{first}\n{second}\n")  # 4 values: enough for 4 coordinates
+    assert main([*fit, "--free", "g_v", "--method", "map", "n_screen=2", "n_starts=1"]) == 0
+
+
 def test_out_that_cannot_take_the_output_exits_2_before_any_work(simulated, tmp_path, capsys):
     a_file = tmp_path / "notes.txt"
     a_file.write_text("mine")
@@ -475,6 +494,37 @@ def test_a_rerun_of_simulate_interrupted_while_writing_leaves_the_earlier_set(
     assert main([*simulate, "--seed", "1"]) == 0
     after = {p.name: p.read_bytes() for p in out.iterdir()}
     assert sorted(after) == sorted(before) and after["agent0.csv"] != before["agent0.csv"]
+
+
+def test_simulating_a_lapse_rate_fit_cannot_reach_says_so(tmp_path, recwarn):
+    """irc simulate takes lapse rates up to 1 while irc fit fits them within (0, 0.5): a
+    user's experiment, but one whose fits end on a bound, which the user is now told."""
+    simulate = ["simulate", "--quiet", "n_agents=1", "n_trials=1"]
+    assert main([*simulate, "--out", str(tmp_path / "a"), "lapse=0.49"]) == 0
+    assert not [w for w in recwarn if "lapse" in str(w.message)]
+    with pytest.warns(UserWarning, match=r"^lapse=0.5: irc fit fits lapse rates within \(0, "):
+        assert main([*simulate, "--out", str(tmp_path / "b"), "lapse=0.5"]) == 0
+
+
+def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeypatch, capsys):
+    """kill (SIGTERM, a scheduler's time limit) ended the process where it stood, leaving a
+    .staged.*.tmp folder of half the recordings in --out; it now cleans up as Ctrl-C does."""
+    out = tmp_path / "sim"
+    write = recordings.write_trials
+
+    def killed_at_the_second(trials, path, model):
+        if path.name == "agent1.csv":
+            os.kill(os.getpid(), signal.SIGTERM)
+        write(trials, path, model)
+
+    handler = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.write_trials", killed_at_the_second)
+    assert main(["simulate", "--out", str(out), "--quiet", "n_agents=2", "n_trials=2"]) == 143
+    assert capsys.readouterr().err.splitlines() == [
+        "irc simulate: terminated; --out keeps its earlier recordings and summary"
+    ]
+    assert list(out.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is handler
 
 
 def test_a_rerun_of_simulate_keeps_no_earlier_memmap_agent_nor_its_summary(tmp_path, monkeypatch):

@@ -16,6 +16,7 @@ import json
 import math
 import re
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -52,9 +53,9 @@ from irc_torchrl.data.files import (
 from irc_torchrl.data.io import nwb_module, read_trials, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.data.units import UNITS
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, continuous_actions
 from irc_torchrl.modules.actor_critic import censored_action_model
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.modules.likelihood import LAPSE_MAX, CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.plots import report_run
 from irc_torchrl.theta import ThetaSpace
@@ -120,6 +121,12 @@ def simulate_recordings(
     if file_format == "nwb":
         nwb_module()  # pynwb missing: say so before simulating anything
     config.validate()
+    if config.lapse >= LAPSE_MAX:
+        warnings.warn(
+            f"lapse={config.lapse}: irc fit fits lapse rates within (0, {LAPSE_MAX}), so a fit "
+            "of these recordings ends on that bound",
+            stacklevel=2,
+        )
     target = resolve_device(device)
     out = Path(out)
     with torch_settings(config.threads, True):
@@ -344,10 +351,12 @@ def fit_recordings(
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
-        if config.covariance == "sandwich":  # refused before any fit, naming the recording
+        # refused before any fit, naming the recording
+        n_nuisance = action_model.nuisance_init.numel()
+        labels = [str(path) for path in paths]
+        _check_enough_actions(recordings, model, len(space.free_names), n_nuisance, labels)
+        if config.covariance == "sandwich":
             n_trials = torch.tensor([len(recording) for recording in recordings])
-            n_nuisance = action_model.nuisance_init.numel()
-            labels = [str(path) for path in paths]
             check_sandwich(n_trials, len(space.free_names), n_nuisance, agents=labels)
         stages = recording_stages(
             out, config, ckpt["path"], model, recordings, space.free_names, seed, target, resume
@@ -416,6 +425,23 @@ def fit_recordings(
         ]
         remove_stale(out, figures, written)
     return summary
+
+
+def _check_enough_actions(
+    recordings: Sequence[TensorDict], model: TaskModel, k: int, n_nuisance: int, labels: list[str]
+) -> None:
+    """Refuse a recording with fewer recorded action values than fitted coordinates (``k`` of
+    θ, ``n_nuisance``): no data that few pins them down, and its fit could only end somewhere
+    on a flat likelihood, unconverged."""
+    per_step = model.action_spec.shape[-1] if continuous_actions(model.action_spec) else 1
+    for recording, label in zip(recordings, labels, strict=True):
+        actions = int(recording["mask"].sum()) * per_step
+        if actions < k + n_nuisance:
+            raise ValueError(
+                f"{label}: {actions} recorded action values for {k + n_nuisance} fitted "
+                f"coordinates ({k} of θ, {n_nuisance} nuisance): too few to fit; expected more "
+                "trials, or fewer free parameters (--free)"
+            )
 
 
 def recording_stages(

@@ -13,8 +13,9 @@ from collections.abc import Iterable
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import unravel_key
 from torchrl.data import Composite, TensorSpec, Unbounded
-from torchrl.envs import Transform
+from torchrl.envs import Compose, DTypeCastTransform, Transform, TransformedEnv
 
 from irc_torchrl.envs.model import TaskModel
 
@@ -156,6 +157,29 @@ class EKFBelief(Transform):
                 )
         self._require(present, *read)
 
+    def _check_upstream(self) -> None:
+        """Refuse a transform before the filter that rewrites what it reads (an
+        ``ObservationNorm`` on ``observation``): the filter's update assumes the task's own
+        observation model, and would weigh the rewritten values as the task's. Casts pass."""
+        try:
+            env = self.parent
+        except AttributeError:  # not in an env: nothing comes before it
+            return
+        read = set(self._read())
+        while isinstance(env, TransformedEnv):
+            earlier = env.transform
+            for transform in earlier.transforms if isinstance(earlier, Compose) else [earlier]:
+                if isinstance(transform, DTypeCastTransform):
+                    continue
+                rewritten = sorted(read.intersection(map(unravel_key, transform.out_keys)))
+                if rewritten:
+                    raise ValueError(
+                        f"EKFBelief: {type(transform).__name__} before it rewrites "
+                        f"{rewritten[0]!r}, which the filter reads as its task's own; expected "
+                        "that transform after EKFBelief"
+                    )
+            env = env.base_env
+
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
@@ -197,6 +221,7 @@ class EKFBelief(Transform):
         batch, device = observation_spec.shape, observation_spec.device
         ds = self.model.state_dim
         self._check(observation_spec)
+        self._check_upstream()
         dtype = observation_spec["state"].dtype  # the belief is the state's
         observation_spec["belief"] = Composite(
             mean=Unbounded(shape=(*batch, ds), dtype=dtype, device=device),
