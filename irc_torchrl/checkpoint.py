@@ -22,7 +22,7 @@ from typing import Any
 import torch
 
 import irc_torchrl
-from irc_torchrl.checks import shown
+from irc_torchrl.checks import first_line, shown
 from irc_torchrl.data.files import atomic_path
 from irc_torchrl.theta import ThetaSpace
 
@@ -30,7 +30,6 @@ __all__ = [
     "FORMAT",
     "HEADER",
     "PACKAGED",
-    "first_line",
     "load_checkpoint",
     "read_weights",
     "resolve_checkpoint",
@@ -246,12 +245,6 @@ def read_weights(path: Path) -> Any:
             f"checkpoint {path}: not a readable irc_torchrl checkpoint "
             f"(truncated or corrupt: {first_line(error)}); expected a file written by irc train"
         ) from None
-
-
-def first_line(error: Exception) -> str:
-    """An exception's message in one line (its first), or its type where it has none."""
-    text = str(error).strip()
-    return text.splitlines()[0] if text else type(error).__name__
 
 
 def _require(path: Path, data: Mapping[str, Any], names: Sequence[str]) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from numbers import Integral, Real
 from typing import Any
 
@@ -15,8 +15,12 @@ __all__ = [
     "SEED_LIMIT",
     "check_fields",
     "count",
+    "first_line",
+    "non_negative",
+    "one_of",
     "positive",
     "positive_number",
+    "probability",
     "real",
     "resolve_device",
     "seed",
@@ -32,6 +36,12 @@ def shown(value: object, width: int = 80) -> str:
     """``repr(value)`` on one line, cut to ``width`` characters (a tensor's spans several)."""
     text = " ".join(repr(value).split())
     return text if len(text) <= width else text[: width - 1] + "…"
+
+
+def first_line(error: Exception) -> str:
+    """An exception's message in one line (its first), or its type where it has none."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
 
 
 def _scalar(value: object) -> object:
@@ -58,6 +68,17 @@ def positive(**values: float) -> None:
 def non_negative(**values: float) -> None:
     """Refuse a config value that is not a finite number ≥ 0."""
     _finite(values, "≥ 0", lambda value: value >= 0)
+
+
+def probability(**values: float) -> None:
+    """Refuse a config value that is not a probability in [0, 1)."""
+    _finite(values, "a probability in [0, 1)", lambda value: 0 <= value < 1)
+
+
+def one_of(name: str, value: str, choices: Sequence[str]) -> None:
+    """Refuse a config value that is not one of ``choices``."""
+    if value not in choices:
+        raise ValueError(f"config: {name} must be one of {tuple(choices)}, got {value!r}")
 
 
 def _finite(values: Mapping[str, float], what: str, holds: Callable[[float], bool]) -> None:

@@ -135,7 +135,7 @@ def _task_model(spec: str | None) -> TaskModel | None:
     import importlib
     import inspect
 
-    from irc_torchrl.checkpoint import first_line
+    from irc_torchrl.checks import first_line
     from irc_torchrl.envs.model import TaskModel, continuous_actions
 
     if spec is None:

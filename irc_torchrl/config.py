@@ -24,7 +24,15 @@ from irc_torchrl.algorithms.ensemble import (
 from irc_torchrl.algorithms.fit import COVARIANCES, CURVATURES, INTERVALS
 from irc_torchrl.algorithms.qiteration import QIterationConfig
 from irc_torchrl.algorithms.runtime import check_workers
-from irc_torchrl.checks import SEED_LIMIT, check_fields, non_negative, resolve_device
+from irc_torchrl.checks import (
+    SEED_LIMIT,
+    check_fields,
+    first_line,
+    non_negative,
+    one_of,
+    probability,
+    resolve_device,
+)
 from irc_torchrl.checks import positive as _positive
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import TaskModel
@@ -54,7 +62,8 @@ __all__ = [
 
 @dataclass
 class AgentsConfig:
-    """Simulated agents: θ* from the prior, acting by softmax over their Q in a fixed world."""
+    """Simulated agents: θ* from the prior, acting by softmax over their Q in the task's world
+    (``world="known"``) or each in a world of its own (``"shared"``)."""
 
     n_agents: int = 20
     n_trials: int = 100
@@ -70,7 +79,7 @@ class AgentsConfig:
             **{"agents.n_agents": self.n_agents, "agents.n_trials": self.n_trials},
             **{"agents.temperature": self.temperature},
         )
-        _one_of("agents.world", self.world, ("known", "shared"))
+        one_of("agents.world", self.world, ("known", "shared"))
         return self
 
 
@@ -100,9 +109,9 @@ class FitConfig:
             **{"fit.n_starts": self.n_starts, "fit.max_iter": self.max_iter},
         )
         _starts_within_screen(self.n_starts, self.n_screen, "fit.")
-        _one_of("fit.curvature", self.curvature, CURVATURES)
-        _one_of("fit.covariance", self.covariance, COVARIANCES)
-        _one_of("fit.intervals", self.intervals, INTERVALS)
+        one_of("fit.curvature", self.curvature, CURVATURES)
+        one_of("fit.covariance", self.covariance, COVARIANCES)
+        one_of("fit.intervals", self.intervals, INTERVALS)
         return self
 
 
@@ -172,7 +181,7 @@ class SimulateConfig:
             motor_noise=self.motor_noise,
             threads=self.threads,
         )
-        _probability(lapse=self.lapse)
+        probability(lapse=self.lapse)
         return self
 
 
@@ -248,12 +257,12 @@ class RecordingFitConfig:
         )
         non_negative(particles=self.particles, calibrate=self.calibrate)
         _starts_within_screen(self.n_starts, self.n_screen)
-        _one_of("curvature", self.curvature, CURVATURES)
-        _one_of("covariance", self.covariance, COVARIANCES)
-        _one_of("intervals", self.intervals, INTERVALS)
-        _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
-        _one_of("calibration_tail", self.calibration_tail, TAILS)
-        _probability(lapse=self.lapse)
+        one_of("curvature", self.curvature, CURVATURES)
+        one_of("covariance", self.covariance, COVARIANCES)
+        one_of("intervals", self.intervals, INTERVALS)
+        one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
+        one_of("calibration_tail", self.calibration_tail, TAILS)
+        probability(lapse=self.lapse)
         if self.fit_lapse:
             _fitted_lapse_start(self.lapse)
         if not (self.time_column and self.trial_column) or self.time_column == self.trial_column:
@@ -262,17 +271,6 @@ class RecordingFitConfig:
                 f"{self.time_column!r} and {self.trial_column!r}"
             )
         return self
-
-
-def _one_of(name: str, value: str, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise ValueError(f"config: {name} must be one of {tuple(choices)}, got {value!r}")
-
-
-def _probability(**values: float) -> None:
-    for name, value in values.items():
-        if not 0 <= value < 1:
-            raise ValueError(f"config: {name} must be a probability in [0, 1), got {value}")
 
 
 def _fitted_lapse_start(value: float) -> None:
@@ -474,7 +472,7 @@ def _yaml(text: str, source: str) -> Any:
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)  # a safe loader: no objects built
     except yaml.YAMLError as error:
-        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+        problem = getattr(error, "problem", None) or first_line(error)
         mark = getattr(error, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
         raise ValueError(f"config: {source} is not valid YAML: {problem}{where}") from None

@@ -25,7 +25,7 @@ import torch  # noqa: E402
 from matplotlib.patches import Circle, Ellipse  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
-from irc_torchrl.checkpoint import first_line  # noqa: E402
+from irc_torchrl.checks import first_line  # noqa: E402
 from irc_torchrl.data.files import atomic_path  # noqa: E402
 from irc_torchrl.data.io import load_memmap  # noqa: E402
 from irc_torchrl.objectives.fisher import Z95  # noqa: E402

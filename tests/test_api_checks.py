@@ -174,6 +174,11 @@ def test_the_loss_reads_one_agents_trials_as_fit_does_and_refuses_cut_trials(shi
         fit_theta(loss, cut, max_iter=1, n_screen=1, n_starts=1)
 
 
+class _Wordless(FactorisedQ):
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        raise AttributeError
+
+
 @pytest.mark.parametrize(
     "network, got",
     [
@@ -182,6 +187,8 @@ def test_the_loss_reads_one_agents_trials_as_fit_does_and_refuses_cut_trials(shi
         ("q of 4 actions", r"reads this task's .* into probabilities of its 3 actions summing to "
          r"1, got probabilities summing to 0\.\d+; a network trained on another task\?"),
         ("q of another width", r"scores this task's .*, got an error \(RuntimeError"),
+        ("q failing without a word",
+         r"scores this task's .*, got an error \(AttributeError: AttributeError\); a network"),
     ],
 )  # fmt: skip
 def test_a_network_of_another_task_is_refused_by_the_1d_loss(shipped, network, got):
@@ -194,6 +201,7 @@ def test_a_network_of_another_task_is_refused_by_the_1d_loss(shipped, network, g
         "q of 2 actions": lambda: FactorisedQ(width, d, 2),
         "q of 4 actions": lambda: FactorisedQ(width, d, 4),
         "q of another width": lambda: FactorisedQ(width + 2, d, 3),
+        "q failing without a word": lambda: _Wordless(width, d, 3),  # an IndexError before
     }[network]()
     InverseRationalLoss(model, BoltzmannActionModel(FactorisedQ(width, d, 3)))  # its own: taken
     features = rf"\(firefly1d\) belief features \[1, {width + d}\] in float64"

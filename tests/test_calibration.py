@@ -25,6 +25,7 @@ from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
 from irc_torchrl.config import FitConfig
+from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -508,7 +509,7 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
     action_model = recover2d._recovery_action_model(config, actor, model)
     for i, method in enumerate(("map", "marginal")):
         loss = InverseRationalLoss(model, action_model, n_agents=2, method=method)
-        result, held = results[method], trials.select(*recover2d.RECORDED)
+        result, held = results[method], trials.select(*TRIAL_KEYS)
         with torch.no_grad():
             beliefs = loss.recovered_beliefs(result.theta_hat, result.nuisance, held)
         assert torch.equal(trials[method, "belief", "mean"], beliefs["belief", "mean"])

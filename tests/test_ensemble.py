@@ -67,7 +67,7 @@ def test_shipped_checkpoint_was_trained_by_the_default_config():
         ("ddpg.n_env=3", "unknown key 'ddpg.n_env'; valid keys: .*ddpg.n_envs"),
         ("ddpg.bc_weight=-1", "ddpg.bc_weight must be ≥ 0"),
         ("ddpg.pre_activation_weight=-1", "ddpg.pre_activation_weight must be ≥ 0"),
-        ("ddpg.loss=sac", "ddpg.loss must be 'ddpg' or 'td3'"),
+        ("ddpg.loss=sac", r"ddpg.loss must be one of \('ddpg', 'td3'\), got 'sac'"),
         ("ddpg.policy_delay=0", "ddpg.policy_delay must be positive"),
         ("ddpg.noise_clip=-0.1", "ddpg.noise_clip must be ≥ 0"),
         ("ddpg.lr_actor=.inf", "ddpg.lr_actor must be finite"),

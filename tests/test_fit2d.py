@@ -19,7 +19,6 @@ from irc_torchrl.algorithms import recover2d
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import expected_intervals, fit_theta, score_check
 from irc_torchrl.algorithms.recover2d import (
-    RECORDED,
     Recovery2DConfig,
     belief_agreement,
     format_recovery,
@@ -30,6 +29,7 @@ from irc_torchrl.algorithms.recover2d import (
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.cli import main
 from irc_torchrl.config import FitConfig, RecordingFitConfig
+from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
 
@@ -59,7 +59,7 @@ def at_truth(recovery):
     trials = recovery[0]
     truth = trials["theta"][:, 0, 0].double()
     motor = torch.full((truth.shape[0], 2), 0.1, dtype=torch.float64).log()
-    return trials.select(*RECORDED), truth, motor
+    return trials.select(*TRIAL_KEYS), truth, motor
 
 
 def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, at_truth):
@@ -370,7 +370,7 @@ def test_likelihood_and_gradient_are_finite_at_the_edges_of_theta_and_motor_nois
     theta[:, free] = space.denormalise(box).repeat(2, 1)[:, free]
     motor = torch.tensor([-10.0, 2.0], dtype=torch.float64).repeat_interleave(len(corners))
     n = theta.shape[0]
-    held = trials.select(*RECORDED).expand(n, *trials.shape[1:]).clone()
+    held = trials.select(*TRIAL_KEYS).expand(n, *trials.shape[1:]).clone()
     loss = InverseRationalLoss(
         model, action_model, n_agents=n, method=method, components=components
     )
@@ -387,7 +387,7 @@ def test_the_outer_covariance_stays_positive_under_a_nearly_noise_free_motor(shi
     actor, model, action_model = shipped
     config = Recovery2DConfig(n_prior_agents=2, n_mistaken_agents=1, n_trials=30, seed=3)
     trials, truth, _ = simulate_recovery_agents(model, actor, config)
-    held = trials.select(*RECORDED)
+    held = trials.select(*TRIAL_KEYS)
     loss = InverseRationalLoss(model, action_model, n_agents=3, method="marginal")
     motor = torch.full((3, 2), -6.0, dtype=torch.float64)
     with torch.no_grad():
@@ -406,7 +406,7 @@ def test_the_same_seed_gives_the_same_fit_bit_for_bit(shipped):
     loss = InverseRationalLoss(model, action_model, n_agents=2)
     fits = [
         fit_theta(
-            loss, trials.select(*RECORDED), n_screen=4, n_starts=1, max_iter=3, seed=seed,
+            loss, trials.select(*TRIAL_KEYS), n_screen=4, n_starts=1, max_iter=3, seed=seed,
             curvature="bfgs",
         )
         for seed in (5, 5, 6)
@@ -423,7 +423,7 @@ def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch
     trials, _, _ = simulate_recovery_agents(
         model, actor, Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=0, n_trials=3)
     )
-    held = trials.select(*RECORDED)
+    held = trials.select(*TRIAL_KEYS)
     loss = InverseRationalLoss(model, action_model, n_agents=1)
 
     def no_work(*args, **kwargs):

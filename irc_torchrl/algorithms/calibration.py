@@ -20,7 +20,8 @@ varied by no more than their noise (4.0–7.3 per parameter, the real data's 3.4
 five draws (200 agents, two drawn after the rule was chosen) its calibrated coverage per draw
 and parameter lay inside 0.90–0.98 in 36 of 40 cells, against 33 with each parameter's own
 quantile; with the gated outer update 33 against 32, every parameter inside over the 200
-agents with either (docs/recovery2d.md).
+agents with either; the shrunk tails rerun at the version of 2026-12-06 29 of 40, g_w just
+over at 0.985 (docs/recovery2d.md).
 """
 
 from __future__ import annotations

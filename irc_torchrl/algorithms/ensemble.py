@@ -5,10 +5,11 @@ firefly task by default, or any continuous-action task of the user's own) whose 
 draws its θ from the prior at each trial; :class:`EKFBelief` keeps the agent's
 belief under that θ and :class:`BeliefReward` pays the reward the agent expects under its
 belief (the paper's ``R_θ(b, a)``). Transitions go to a ``TensorDictReplayBuffer``;
-``DDPGLoss`` (TD(0) targets, target networks moved by ``SoftUpdate``) trains an actor and a
-critic that both read the belief features and θ. Exploration is additive Gaussian noise
-annealed over frames. A fixed θ grid evaluates the greedy policy on the world's reward, and
-the best policy by evaluation is kept (learning curves are not monotone).
+``DDPGLoss`` (n-step targets through ``MultiStepTransform``, 5 steps by default; ``TD3Loss``
+optionally; target networks moved by ``SoftUpdate``) trains an actor and a critic that both
+read the belief features and θ. Exploration is additive Gaussian noise annealed over frames.
+A fixed θ grid evaluates the greedy policy on the world's reward, and the best policy by
+evaluation is kept (learning curves are not monotone).
 
 A *specialist* is the same algorithm over a θ space with every parameter fixed
 (``theta_fixed``): the premise of the method is that the ensemble matches it.
@@ -45,8 +46,9 @@ from torchrl.objectives import DDPGLoss, LossModule, SoftUpdate, TD3Loss, ValueE
 
 import irc_torchrl
 from irc_torchrl.algorithms.runtime import resolve_device, torch_settings
-from irc_torchrl.checkpoint import first_line, load_checkpoint, save_checkpoint
-from irc_torchrl.checks import check_fields, count, non_negative, real
+from irc_torchrl.algorithms.simulate import first_trial_mask
+from irc_torchrl.checkpoint import load_checkpoint, save_checkpoint
+from irc_torchrl.checks import check_fields, count, first_line, non_negative, one_of, real
 from irc_torchrl.checks import positive as check_positive
 from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.data.files import write_json, write_text
@@ -317,27 +319,16 @@ class Firefly2DConfig:
                 f"config: ddpg.max_grad_norm must be ≥ 0 and finite (0: no clipping), "
                 f"got {d.max_grad_norm}"
             )
-        if d.activation not in ACTIVATIONS:
-            raise ValueError(
-                f"config: ddpg.activation must be one of {sorted(ACTIVATIONS)}, "
-                f"got {d.activation!r}"
-            )
-        if d.loss not in ("ddpg", "td3"):
-            raise ValueError(f"config: ddpg.loss must be 'ddpg' or 'td3', got {d.loss!r}")
-        if d.warmup_policy not in ("pursuit", "random"):
-            raise ValueError(
-                f"config: ddpg.warmup_policy must be 'pursuit' or 'random', got {d.warmup_policy!r}"
-            )
+        one_of("ddpg.activation", d.activation, sorted(ACTIVATIONS))
+        one_of("ddpg.loss", d.loss, ("ddpg", "td3"))
+        one_of("ddpg.warmup_policy", d.warmup_policy, ("pursuit", "random"))
         if d.bc_weight > 0 and d.warmup_policy != "pursuit":
             raise ValueError(
                 f"config: ddpg.bc_weight clones the pursuit controller, which "
                 f"ddpg.warmup_policy={d.warmup_policy!r} does not run; expected 0, "
                 f"got {d.bc_weight}"
             )
-        if self.logger not in ("csv", "tensorboard", "none"):
-            raise ValueError(
-                f"config: logger must be 'csv', 'tensorboard' or 'none', got {self.logger!r}"
-            )
+        one_of("logger", self.logger, ("csv", "tensorboard", "none"))
         if model is None:
             make_model(self)  # theta_fixed: unknown names and out-of-range values
         return self
@@ -629,9 +620,7 @@ def _first_trials(
     )
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(model.max_steps, policy, break_when_any_done=False)
-    done = rollout["next", "done"].squeeze(-1)
-    last = done.int().argmax(-1)  # the first done of each row: the end of its first trial
-    return rollout, torch.arange(done.shape[-1], device=done.device) <= last.unsqueeze(-1)
+    return rollout, first_trial_mask(rollout["next", "done"].squeeze(-1))
 
 
 @dataclass

@@ -856,7 +856,7 @@ def _rows_of(starts: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | 
 _REPORTS = None
 
 
-def _start_worker(threads: int, flush_denormal: bool, reports) -> None:
+def _start_worker(threads: int, flush_denormal: bool, reports: Any) -> None:
     """Set up a worker process: its share of the threads, its parent's denormal flushing and
     the queue its progress goes to."""
     global _REPORTS

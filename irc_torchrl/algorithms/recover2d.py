@@ -51,12 +51,10 @@ from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
-from irc_torchrl.checks import check_fields, non_negative
+from irc_torchrl.checks import check_fields, non_negative, one_of, probability
 from irc_torchrl.config import (
     FitConfig,
     RecordingFitConfig,
-    _one_of,
-    _probability,
     config_to_dict,
 )
 from irc_torchrl.data.files import (
@@ -66,6 +64,7 @@ from irc_torchrl.data.files import (
     write_json,
     write_text,
 )
+from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
@@ -92,9 +91,6 @@ __all__ = [
     "state_layout",
     "write_recovery",
 ]
-
-#: the held-trial fields an experimenter records (no θ, no belief)
-RECORDED = ("state", "action", "target", "mask", "task_theta")
 
 
 @dataclass
@@ -141,9 +137,10 @@ class Recovery2DConfig:
     #: 0.72–0.93 per parameter and draw)
     calibrate: int = 2
     #: how each parameter's calibration factor reads its tail: "shrunk" toward all
-    #: parameters' by as much as it is noise (over five draws 33 of 40 (draw, parameter)
-    #: cells inside 0.90–0.98, 36 before the gated outer update), or its "own" 95% quantile
-    #: alone (32 of 40; 33 before)
+    #: parameters' by as much as it is noise (over five draws 29 of 40 (draw, parameter)
+    #: cells inside 0.90–0.98 at the version of 2026-12-06, 33 at the gated outer update's
+    #: and 36 before it), or its "own" 95% quantile alone (32 of 40 at the gated update's;
+    #: 33 before)
     calibration_tail: str = "shrunk"
     #: the precision the frozen actor runs in inside the float64 likelihood: "float32" makes
     #: the recovery about 1.3× faster, with the same intervals at a given θ (different fits:
@@ -183,11 +180,11 @@ class Recovery2DConfig:
             raise ValueError("config: n_prior_agents + n_mistaken_agents must be ≥ 1")
         if not 0 < self.motor_noise < math.inf:
             raise ValueError(f"config: motor_noise must be > 0 and finite, got {self.motor_noise}")
-        _probability(lapse=self.lapse)
+        probability(lapse=self.lapse)
         self.fit.validate()
-        _one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
+        one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         check_workers(self.fit.workers, resolve_device(self.device))
-        _one_of("calibration_tail", self.calibration_tail, TAILS)
+        one_of("calibration_tail", self.calibration_tail, TAILS)
         unknown = [m for m in self.method_list if m not in METHODS]
         repeated = len(set(self.method_list)) != len(self.method_list)
         if unknown or repeated or not self.method_list:
@@ -264,7 +261,7 @@ def predicted_widths(
     space = model.theta_space
     widths = {}
     for n in n_trials:
-        intervals = expected_intervals(loss, trials[:, :n].select(*RECORDED), theta, seed=seed)
+        intervals = expected_intervals(loss, trials[:, :n].select(*TRIAL_KEYS), theta, seed=seed)
         median = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
         widths[n] = dict(zip(space.free_names, median.tolist(), strict=True))
     return widths
@@ -346,7 +343,7 @@ def recover_firefly2d(
         model, actor, config, None if progress is None else partial(progress, "simulate")
     )
     timings = {"simulate_s": time.perf_counter() - start}
-    held = trials.select(*RECORDED)
+    held = trials.select(*TRIAL_KEYS)
     stages.include([held])
     n_agents = theta_true.shape[0]
     summary: dict = {
@@ -483,7 +480,7 @@ def _calibrate(
         synthetic = simulate_at_fits(
             model, actor, action_model, result, world, config.n_trials, config.seed + 1000 + i
         )
-        synthetic = synthetic.select(*RECORDED).to(held.device)
+        synthetic = synthetic.select(*TRIAL_KEYS).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"
         fitted = _fit_methods(
             config, model, action_model, synthetic, stages, progress, label, f"calibration{i + 1}"

@@ -35,11 +35,10 @@ def boltzmann_policy(
     temperature = positive_number("temperature", temperature)
     return TensorDictSequential(
         BeliefFeatures(model),
-        TensorDictModule(
-            lambda f: q_network(f) / temperature, in_keys=["features"], out_keys=["logits"]
-        ),
         ProbabilisticActor(
-            TensorDictModule(lambda logits: logits, in_keys=["logits"], out_keys=["logits"]),
+            TensorDictModule(
+                lambda f: q_network(f) / temperature, in_keys=["features"], out_keys=["logits"]
+            ),
             in_keys=["logits"],
             distribution_class=torch.distributions.Categorical,
             spec=model.action_spec,

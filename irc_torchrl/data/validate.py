@@ -1,8 +1,10 @@
 """Checks on a raw recording, before it becomes held trials: one clear message per problem.
 
 A recording is a table of columns, one value per time step, with a trial column. Every check
-raises one ``KeyError`` (columns) or ``ValueError`` (values) whose message names the file, the
-trial, the field and what was expected, so that a fit never starts on data it would misread.
+of what a fit would misread raises one ``KeyError`` (columns) or ``ValueError`` (values) whose
+message names the file, the trial, the field and what was expected, so that a fit never starts
+on it; what may be the lab's choice (samples past the task's stop, actions that do not drive
+the recorded velocities) is warned of instead.
 Values are checked in the model's units (after :func:`~irc_torchrl.data.units.convert_units`);
 a velocity far beyond anything the θ space allows usually means a unit mistake.
 """

@@ -14,7 +14,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import unravel_key
-from torchrl.data import Composite, TensorSpec, Unbounded
+from torchrl.data import Composite, Unbounded
 from torchrl.envs import Compose, DTypeCastTransform, Transform, TransformedEnv
 
 from irc_torchrl.envs.model import TaskModel
@@ -25,6 +25,7 @@ __all__ = [
     "ekf_update",
     "ekf_step",
     "joseph_update",
+    "symmetrise",
     "EKFBelief",
     "BeliefReward",
     "BeliefFeatures",
@@ -34,7 +35,8 @@ BELIEF_MEAN = ("belief", "mean")
 BELIEF_COV = ("belief", "cov")
 
 
-def _symmetrise(cov: torch.Tensor) -> torch.Tensor:
+def symmetrise(cov: torch.Tensor) -> torch.Tensor:
+    """``cov [..., n, n]`` made exactly symmetric: rounding leaves a product's halves unequal."""
     return 0.5 * (cov + cov.transpose(-1, -2))
 
 
@@ -49,7 +51,7 @@ def ekf_predict(
     jac = model.transition_jacobian(mean, action, theta)
     mean_next = model.transition(mean, action, theta)
     cov_next = jac @ cov @ jac.transpose(-1, -2) + model.process_cov(mean, action, theta)
-    return mean_next, _symmetrise(cov_next)
+    return mean_next, symmetrise(cov_next)
 
 
 def ekf_gain(
@@ -59,7 +61,7 @@ def ekf_gain(
     jac = model.observation_jacobian(mean, theta)
     noise = model.observation_cov(mean, theta)
     cross = jac @ cov  # H Σ
-    innovation_cov = _symmetrise(cross @ jac.transpose(-1, -2) + noise)
+    innovation_cov = symmetrise(cross @ jac.transpose(-1, -2) + noise)
     # K = Σ Hᵀ S⁻¹ = (S⁻¹ H Σ)ᵀ, solved rather than inverted (a batched LU solve of the small S
     # is several times faster on CPU than cholesky + cholesky_solve, and S ⪰ R ≻ 0 is well posed)
     gain = torch.linalg.solve(innovation_cov, cross).transpose(-1, -2)
@@ -96,7 +98,7 @@ def joseph_update(
     eye = torch.eye(mean.shape[-1], dtype=mean.dtype, device=mean.device)
     a = eye - gain @ jac
     cov_next = a @ cov @ a.transpose(-1, -2) + gain @ noise @ gain.transpose(-1, -2)
-    return mean_next, _symmetrise(cov_next), a
+    return mean_next, symmetrise(cov_next), a
 
 
 def ekf_step(
@@ -265,9 +267,6 @@ class BeliefReward(Transform):
                 "e.g. Compose(EKFBelief(model), BeliefReward(model))"
             )
         return observation_spec
-
-    def transform_reward_spec(self, reward_spec: TensorSpec) -> TensorSpec:
-        return reward_spec
 
 
 class BeliefFeatures(TensorDictModuleBase):

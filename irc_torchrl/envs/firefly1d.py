@@ -16,7 +16,7 @@ import torch
 from torchrl.data import Categorical
 
 from irc_torchrl.checks import count, positive_number
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, own_theta_space
 from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.theta import Parameter, ThetaSpace
 
@@ -74,12 +74,7 @@ class Firefly1DModel(TaskModel):
         count("max_steps", max_steps)
         positive_number("target_range", target_range)
         positive_number("reward_value", reward_value)
-        self.theta_space = theta_space if theta_space is not None else firefly1d_theta_space()
-        if self.theta_space.names != firefly1d_theta_space().names:
-            raise ValueError(
-                f"theta_space: expected parameters {firefly1d_theta_space().names}, "
-                f"got {self.theta_space.names}"
-            )
+        self.theta_space = own_theta_space(theta_space, firefly1d_theta_space)
         self.target_range = target_range
         self.max_steps = max_steps
         self.reward_value = reward_value

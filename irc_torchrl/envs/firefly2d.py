@@ -57,7 +57,7 @@ import torch
 from torchrl.data import Bounded
 
 from irc_torchrl.checks import count, positive_number, real
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, own_theta_space
 from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.theta import Parameter, ThetaSpace
 
@@ -160,12 +160,7 @@ class Firefly2DModel(TaskModel):
         target_angle: float = math.pi / 4,
         reward_value: float = 10.0,
     ) -> None:
-        self.theta_space = theta_space if theta_space is not None else firefly2d_theta_space()
-        if self.theta_space.names != firefly2d_theta_space().names:
-            raise ValueError(
-                f"theta_space: expected parameters {firefly2d_theta_space().names}, "
-                f"got {self.theta_space.names}"
-            )
+        self.theta_space = own_theta_space(theta_space, firefly2d_theta_space)
         self.max_steps = count("max_steps", max_steps)
         self.min_steps = count("min_steps", min_steps, least=0)  # 0: may stop at once
         if self.min_steps > self.max_steps:

@@ -10,6 +10,8 @@ task's θ, :class:`~irc_torchrl.envs.belief.EKFBelief` runs the agent's belief w
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torchrl.data import Categorical, TensorSpec
@@ -23,6 +25,7 @@ __all__ = [
     "bounded_box",
     "check_action_spec",
     "continuous_actions",
+    "own_theta_space",
 ]
 
 #: a recorded rate this many times the largest gain of its unit in the θ space is taken as a
@@ -60,7 +63,7 @@ class TaskModel(abc.ABC):
     #: none a base named: the class's name)
     name: str
 
-    def __init_subclass__(cls, **kwargs) -> None:
+    def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if "name" in cls.__dict__:
             cls._named = True
@@ -198,7 +201,9 @@ class TaskModel(abc.ABC):
         return _batched_jacobian(lambda s, th: self.observe(s, th), state, theta)
 
 
-def _batched_jacobian(fn, state: torch.Tensor, *args: torch.Tensor) -> torch.Tensor:
+def _batched_jacobian(
+    fn: Callable[..., torch.Tensor], state: torch.Tensor, *args: torch.Tensor
+) -> torch.Tensor:
     """Jacobian of ``fn`` with respect to its first argument, for every batch element."""
     batch = state.shape[:-1]
     flat = [state.reshape(-1, state.shape[-1])]
@@ -253,3 +258,14 @@ def check_action_spec(model: TaskModel) -> None:
         f"spec of shape [da], got {type(spec).__name__} of {spec.dtype}, shape "
         f"{list(spec.shape)} (task {model.name!r})"
     )
+
+
+def own_theta_space(space: ThetaSpace | None, default: Callable[[], ThetaSpace]) -> ThetaSpace:
+    """``space`` (other bounds or priors of a task's parameters), or the task's ``default()``
+    where ``None``; a space of other parameters is refused: the task's equations read them."""
+    expected = default()
+    if space is None:
+        return expected
+    if space.names != expected.names:
+        raise ValueError(f"theta_space: expected parameters {expected.names}, got {space.names}")
+    return space

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -127,7 +128,7 @@ class TaskEnv(EnvBase):
             seed = int(torch.randint(2**62, (), dtype=torch.int64))
         self.rng.manual_seed(int(seed))
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         space, batch = self.model.theta_space, self.batch_size
         theta = kwargs.get("theta")
         theta = self._check_theta(theta, "theta") if theta is not None else self.theta

@@ -10,7 +10,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from irc_torchrl.envs.model import bounded_box
 
-__all__ = ["Lapse"]
+__all__ = ["Lapse", "lapse_draw"]
 
 
 class Lapse(TensorDictModuleBase):
@@ -64,9 +64,15 @@ class Lapse(TensorDictModuleBase):
                 f"got shape {list(self.lapse.shape)}"
             )
         lapsed = torch.rand(action.shape, device="cpu") < self.lapse
-        width = self.high - self.low
-        draw = self.low - width / 2 + 2 * width * torch.rand(action.shape, device="cpu")
-        draw = torch.minimum(torch.maximum(draw, self.low), self.high)
+        draw = lapse_draw(self.low, self.high, torch.rand(action.shape, device="cpu"))
+        draw = draw.clamp(self.low, self.high)
         out = torch.where(lapsed.to(action.device), draw.to(action), action)
         tensordict.set(self.action_key, out)
         return tensordict
+
+
+def lapse_draw(low: torch.Tensor, high: torch.Tensor, uniform: torch.Tensor) -> torch.Tensor:
+    """A lapse's action from ``uniform`` draws in [0, 1): uniform over the bounds widened by half
+    their width on each side (the simulated agent clips it; the likelihood scores it so)."""
+    width = high - low
+    return low - width / 2 + 2 * width * uniform

@@ -17,7 +17,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from irc_torchrl.checks import positive_number
+from irc_torchrl.envs.belief import symmetrise
 from irc_torchrl.envs.model import bounded_box
+from irc_torchrl.modules.lapse import lapse_draw
 
 __all__ = [
     "LAPSE_MAX",
@@ -75,7 +77,7 @@ def gaussian_log_prob_of_draw(
         log_lapse, log_keep, low, high = lapse
         width = high - low
         lapsed = draw_like(torch.rand) < log_lapse.detach().exp()
-        draw = torch.where(lapsed, low - width / 2 + 2 * width * draw_like(torch.rand), draw)
+        draw = torch.where(lapsed, lapse_draw(low, high, draw_like(torch.rand)), draw)
     draw = draw.detach()
     logp = -0.5 * (draw - mean) ** 2 / var - 0.5 * var.log() - 0.5 * math.log(2 * math.pi)
     if lapse is not None:
@@ -410,7 +412,7 @@ class CensoredGaussianActionModel(nn.Module):
             shift = shift + cov_z * moved
             shrink = shrink[..., None, None]
             cov = cov - cov_z.unsqueeze(-1) * cov_z.unsqueeze(-2) * shrink
-            cov = 0.5 * (cov + cov.transpose(-1, -2))
+            cov = symmetrise(cov)
             if i + 1 < mean.shape[-1]:  # what the next dimensions are conditioned on
                 shift_action = shift_action + cov_y * moved
                 cross = cross - cov_z.unsqueeze(-1) * cov_y.unsqueeze(-2) * shrink

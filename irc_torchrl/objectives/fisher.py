@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from irc_torchrl.envs.belief import symmetrise
 from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
@@ -48,7 +49,7 @@ def batched_hessian(
         basis = torch.eye(p, dtype=grad.dtype, device=grad.device).unsqueeze(1).expand(p, n, p)
         (columns,) = torch.autograd.grad(grad, params, basis, is_grads_batched=True)
     hessian = columns.movedim(0, 1)
-    return value.detach(), grad.detach(), 0.5 * (hessian + hessian.transpose(1, 2)).detach()
+    return value.detach(), grad.detach(), symmetrise(hessian).detach()
 
 
 @dataclass
@@ -103,7 +104,7 @@ def observed_covariance(hessian: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     coordinates it leaves unbounded ``[n, p]``: a direction of zero or negative curvature
     leaves the coordinates that load on it without an interval (infinite), and only those.
     The Hessian's symmetric part is used (``eigh`` alone would read one triangle)."""
-    eigval, eigvec = torch.linalg.eigh(0.5 * (hessian + hessian.mT))
+    eigval, eigvec = torch.linalg.eigh(symmetrise(hessian))
     positive = eigval > 1e-10 * eigval.abs().amax(-1, keepdim=True).clamp_min(1e-300)
     loading = eigvec**2  # [n, p coordinates, p directions]
     unbounded = ((loading > 1e-8) & ~positive.unsqueeze(1)).any(-1)

@@ -11,13 +11,14 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
-from irc_torchrl.checks import count
+from irc_torchrl.checks import count, first_line
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
 from irc_torchrl.envs.model import TaskModel, check_action_spec, continuous_actions
@@ -141,7 +142,7 @@ class InverseRationalLoss(LossModule):
             )
         self._nuisance_bounded = bounded
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         """No value estimator: the objective is a likelihood, not a TD target."""
 
     @property
@@ -288,7 +289,15 @@ class InverseRationalLoss(LossModule):
         return theta_b, nuisance_b, state, action, target, mask, task_theta
 
     def _map_log_likelihood(
-        self, theta_b, nuisance_b, state, action, target, mask, task_theta, generator
+        self,
+        theta_b: torch.Tensor,
+        nuisance_b: torch.Tensor,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor,
+        task_theta: torch.Tensor,
+        generator: torch.Generator | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The hard E-step: beliefs along the most probable observations, then the actions."""
         means, covs = self.beliefs(theta_b, state, action, target, task_theta)
@@ -370,7 +379,12 @@ class InverseRationalLoss(LossModule):
         return torch.stack(means, 2), torch.stack(covs, 2)
 
     def _transition_log_likelihood(
-        self, theta_b, state, action, mask, generator
+        self,
+        theta_b: torch.Tensor,
+        state: torch.Tensor,
+        action: torch.Tensor,
+        mask: torch.Tensor,
+        generator: torch.Generator | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Per trial ``Σ log N(s_{t+1}; f(s_t, a_t, θ), Q(θ))`` over consecutive valid steps,
         and the same for next states drawn from that Gaussian with ``generator`` (else 0)."""
@@ -504,7 +518,7 @@ def _check_action_model(model: TaskModel, action_model: nn.Module) -> None:
     except (RuntimeError, KeyError, IndexError, TypeError, ValueError, AttributeError) as error:
         raise ValueError(
             f"action_model: expected a network that scores this task's ({model.name}) {width}, "
-            f"got an error ({type(error).__name__}: {str(error).splitlines()[0]}); a network "
+            f"got an error ({type(error).__name__}: {first_line(error)}); a network "
             "of another task, or of another dtype?"
         ) from None
     if wrong is not None:

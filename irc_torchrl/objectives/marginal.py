@@ -37,7 +37,7 @@ import torch
 from torch.func import vjp, vmap
 
 from irc_torchrl.checks import count
-from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_update
+from irc_torchrl.envs.belief import ekf_gain, ekf_predict, ekf_step, joseph_update, symmetrise
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 
@@ -217,7 +217,9 @@ def _outer_pass(
     def components(x: torch.Tensor) -> torch.Tensor:
         return x if m == 1 else x.repeat_interleave(m, 0)
 
-    def policy(z, p, tg, step, th):
+    def policy(
+        z: torch.Tensor, p: torch.Tensor, tg: torch.Tensor, step: torch.Tensor, th: torch.Tensor
+    ) -> torch.Tensor:
         return action_model.actor(model.belief_features(z, p, tg, step, th))
 
     logps, means, covs, outers, draws = [], [], [], [], []
@@ -274,7 +276,7 @@ def _outer_pass(
         mean, cov, outer = (x.view(n, m, *x.shape[1:]) for x in carried)
         finished.append(tuple(x[below:] for x in (mean, cov, outer)))
 
-    def stack(xs):
+    def stack(xs: list[torch.Tensor]) -> torch.Tensor | None:
         if not xs:
             return None
         padded = [torch.cat([x, x.new_zeros(n_rows - len(x), *x.shape[1:])]) for x in xs]
@@ -425,7 +427,7 @@ def _propagate(
     mean, cov, a = joseph_update(prior, prior_cov, gain, jac_h, agent_noise, residual)
     world_noise = model.observation_cov(next_state, task_theta)
     outer = (a @ jac_f) @ outer @ (a @ jac_f).mT + gain @ world_noise @ gain.mT
-    return mean, cov, 0.5 * (outer + outer.mT)
+    return mean, cov, symmetrise(outer)
 
 
 def _split(
