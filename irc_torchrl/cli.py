@@ -104,7 +104,12 @@ def _train(args: argparse.Namespace) -> int:
 
     model = _task_model(args.model)
     device = [f"device={args.device}"] if args.device is not None else []
-    config = load_firefly2d_config(args.config, [*args.overrides, *device], model)
+    base = None
+    if args.resume is not None and args.config is None:  # resumed, its settings go on
+        from irc_torchrl.checkpoint import load_checkpoint
+
+        base = load_checkpoint(args.resume)["config"]
+    config = load_firefly2d_config(args.config, [*args.overrides, *device], model, base)
     _check_sendable(args.model, "ddpg.collector_workers", config.ddpg.collector_workers)
     result = train_ensemble(
         config,
@@ -434,8 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Learn one Q over the θ prior (Algorithm 1), check it against exact DP, simulate "
             "agents with θ* from the prior, fit each agent's θ with 95% intervals (Algorithm 2) "
-            "and report coverage. Writes config.yaml, summary.json and figures (with "
-            "--task firefly2d also trials/) into --out."
+            "and report coverage. Writes config.yaml, summary.json and figures into --out "
+            "(firefly1d also figures.npz, firefly2d trials/)."
         ),
     )
     demo.add_argument(
@@ -448,7 +453,9 @@ def build_parser() -> argparse.ArgumentParser:
             "about a minute on 2 cores"
         ),
     )
-    demo.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
+    demo.add_argument(
+        "--out", default=None, help="output folder (default runs/demo; runs/demo2d with firefly2d)"
+    )
     demo.add_argument(
         "--seed", type=int, default=None, help="seed of every random draw (overrides the config's)"
     )
@@ -466,7 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
         "overrides",
         nargs="*",
         metavar="key=value",
-        help="config overrides, e.g. agents.n_agents=30",
+        help="config overrides, e.g. agents.n_agents=30 (firefly2d: n_trials=60)",
     )
     demo.set_defaults(run=_demo)
     train = commands.add_parser(
@@ -481,7 +488,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_model(train, "warmed up with random actions by default")
     train.add_argument("--config", default=None, help="a YAML config (default: the embedded one)")
     train.add_argument("--out", default="runs/train", help="output folder (default runs/train)")
-    train.add_argument("--resume", default=None, help="a checkpoint to continue from")
+    train.add_argument(
+        "--resume",
+        default=None,
+        help="a checkpoint to continue from, with its settings (without --config) and the "
+        "key=value overrides given, e.g. ddpg.total_frames=768000",
+    )
     train.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
     train.add_argument(
         "--device",
@@ -582,6 +594,8 @@ def _check_arguments(args: argparse.Namespace) -> None:
             f"{args.command} would overwrite it; choose another folder"
         )
     if written_by != _writes(args):
+        if written_by == "recover" and summary.get("task") == "firefly2d":
+            written_by += " (or irc demo --task firefly2d)"
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"
@@ -656,6 +670,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(stray)}{form}")
     if extra:  # irc fit's FILE and settings are told apart by _files_and_settings
         args.overrides = [*args.overrides, *extra]
+    if args.command == "demo" and args.out is None:  # the two demos' outputs apart
+        args.out = "runs/demo2d" if args.task == "firefly2d" else "runs/demo"
     formatwarning = warnings.formatwarning  # catch_warnings does not restore it
     warnings.formatwarning = partial(_format_warning, args.command)
     handles_signals = threading.current_thread() is threading.main_thread()

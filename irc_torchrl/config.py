@@ -8,7 +8,8 @@ write the same values out for editing. ``key=value`` overrides address nested fi
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Hashable, Sequence
+import difflib
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -306,9 +307,14 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
     current = getattr(config, head) if head in names else None
     nested = dataclasses.is_dataclass(current) or isinstance(current, dict)
     if head not in names or (rest and not nested):
-        valid = ", ".join(_valid_keys(root))
-        seed = " (the seed is the option --seed)" if prefix + dotted == "seed" else ""
-        raise KeyError(f"config: unknown key {prefix + dotted!r}{seed}; valid keys: {valid}")
+        valid = _valid_keys(root)
+        close = difflib.get_close_matches(prefix + dotted, valid, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        if prefix + dotted == "seed":
+            hint = " (the seed is the option --seed)"
+        raise KeyError(
+            f"config: unknown key {prefix + dotted!r}{hint}; valid keys: {', '.join(valid)}"
+        )
     if rest and isinstance(current, dict):  # a mapping field: ``theta.g_v=1.2``
         current[rest] = value
         return
@@ -364,19 +370,25 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
 
 
 def load_firefly2d_config(
-    path: str | Path | None = None, overrides: Sequence[str] = (), model: TaskModel | None = None
+    path: str | Path | None = None,
+    overrides: Sequence[str] = (),
+    model: TaskModel | None = None,
+    base: Mapping[str, Any] | None = None,
 ) -> Firefly2DConfig:
     """The ensemble-training config: embedded default, then the YAML file, then ``key=value``.
 
     ``model``: a task of the user's own; the default then names it as its task and warms up
     with random actions (the pursuit controller knows the 2D firefly only) (``None``: the 2D
-    firefly task).
+    firefly task). ``base``: settings in plain-dict form over the embedded default (a
+    checkpoint's ``config``, so that a resumed run goes on with them).
     """
     config = Firefly2DConfig()
     if model is not None:
         config.task = model.name
         if not isinstance(model, Firefly2DModel):
             config.ddpg.warmup_policy = "random"
+    for key, value in (base or {}).items():
+        _set(config, key, value, config)
     return _update(config, path, overrides).validate(model)
 
 

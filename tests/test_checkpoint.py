@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from conftest import default_dtype
 
 import irc_torchrl
@@ -456,6 +457,26 @@ def test_a_resumed_run_runs_its_own_configs_rates_and_noise_saying_what_changed(
     assert rates == [3e-4, 2e-3]
     assert ckpt["exploration"]["sigma_end"].item() == pytest.approx(0.01)
     assert ckpt["exploration"]["sigma_init"].item() == pytest.approx(0.15)
+
+
+def test_irc_train_resumed_goes_on_with_the_checkpoints_settings(tmp_path, trained, recwarn):
+    """irc train --resume rebuilt its config from the defaults: a run over 32 envs, [16, 16]
+    networks and a 4-θ grid was refused, or where the networks matched went on over 64 envs
+    and another grid (the kept policy chosen on two grids), without a word. Now the
+    checkpoint's settings go on, and a setting changed on resuming is named."""
+    from irc_torchrl.cli import main
+
+    _, out = trained
+    resume = ["train", "--resume", str(out / "checkpoint.pt"), "--quiet", "ddpg.total_frames=1536"]
+    assert main([*resume, "--out", str(tmp_path / "a")]) == 0
+    assert not recwarn.list  # a larger budget is why one resumes
+    config = yaml.safe_load((tmp_path / "a" / "config.yaml").read_text())
+    ddpg = config["ddpg"]
+    assert (ddpg["n_envs"], ddpg["hidden"], ddpg["total_frames"]) == (32, [16, 16], 1536)
+    assert (config["evaluation"]["n_theta"], config["logger"]) == (4, "none")
+    changed = rf"^resume: continuing {out / 'checkpoint.pt'} with the config's evaluation.n_t"
+    with pytest.warns(UserWarning, match=changed + r"heta: 4 → 8$"):
+        assert main([*resume, "--out", str(tmp_path / "b"), "evaluation.n_theta=8"]) == 0
 
 
 def test_checkpoints_fall_at_batch_ends_so_a_resume_misses_no_update(tmp_path, monkeypatch):

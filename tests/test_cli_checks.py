@@ -55,8 +55,12 @@ def test_each_option_reaches_the_run_it_sets(monkeypatch, tmp_path):
     assert (config.seed, config.device, config.checkpoint) == (8, "cpu:0", str(policy))
     args, kwargs = _handed(monkeypatch, recover2d, "run_recovery", [*argv, "--resume"])
     assert (args[4], kwargs["keep"]) == (True, True)  # the fits kept, and read
+    monkeypatch.chdir(tmp_path)
     args, kwargs = _handed(monkeypatch, recover2d, "run_recovery", ["demo", "--task", "firefly2d"])
     assert (args[4], kwargs["keep"]) == (False, False)  # minutes long: no stages to resume
+    # the demos' outputs apart: the README's 2D demo in runs/demo refused the 1D one there
+    assert args[1] == "runs/demo2d"
+    assert str(_handed(monkeypatch, demo, "run_demo", ["demo"])[0][1]) == "runs/demo"
     argv = ["train", "--seed", "9", "--device", "cpu:0", "--out", out]
     (config,), kwargs = _handed(monkeypatch, ensemble, "train_ensemble", argv)
     assert (kwargs["seed"], config.device, kwargs["out"]) == (9, "cpu:0", out)
@@ -131,13 +135,14 @@ def test_a_recording_named_like_a_setting_is_a_recording(tmp_path, monkeypatch):
 
 
 def test_out_holding_another_commands_summary_is_refused_but_a_short_recovery_may_rerun(tmp_path):
-    (tmp_path / "summary.json").write_text(json.dumps({"command": "recover"}))
+    (tmp_path / "summary.json").write_text(json.dumps({"command": "recover", "task": "firefly2d"}))
     parse = build_parser().parse_args
     (tmp_path / "notes").write_text("")  # a file by any name, a suffix or none
     with pytest.raises(ValueError, match="--out: expected a folder, .*notes is a file"):
         _check_arguments(parse(["train", "--out", str(tmp_path / "notes")]))
     _check_arguments(parse(["demo", "--task", "firefly2d", "--out", str(tmp_path)]))
-    with pytest.raises(ValueError, match="holds the summary.json of irc recover, which irc demo"):
+    written = r"summary.json of irc recover \(or irc demo --task firefly2d\), which irc demo"
+    with pytest.raises(ValueError, match=written):
         _check_arguments(parse(["demo", "--out", str(tmp_path)]))
 
 
@@ -349,3 +354,19 @@ def test_a_recording_after_the_options_is_a_recording(tmp_path, monkeypatch, cap
     argv = ["fit", "max_iter=3", "--out", str(tmp_path / "out"), str(recording), "n_starts=2"]
     (files, _, config), _ = _handed(monkeypatch, recordings, "fit_recordings", argv)
     assert (files, config.max_iter, config.n_starts) == ([str(recording)], 3, 2)
+
+
+def test_a_fit_converged_early_ends_its_progress_bar_at_100_percent():
+    """A fit converged after 41 of its 80 iterations left 'fit (marginal): 51%| 41/80', which
+    reads as a run that stopped part-way."""
+    import io
+
+    from tqdm.auto import tqdm
+
+    from irc_torchrl.algorithms.runtime import finish
+
+    shown = io.StringIO()
+    with tqdm(total=80, desc="fit", file=shown) as bar:
+        bar.update(41)
+        finish(bar)
+    assert shown.getvalue().rstrip().split("\r")[-1].startswith("fit: 100%|##########| 41/41 ")

@@ -302,7 +302,7 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        (["simulate", "n_agent=2"], "unknown key 'n_agent'; valid keys: n_agents, n_trials"),
+        (["simulate", "n_agent=2"], "key 'n_agent' (did you mean 'n_agents'?); valid keys: n_"),
         (["simulate", "theta.g_x=1"], "unknown θ parameter 'g_x'; valid names: g_v"),
         (["simulate", "theta.g_v=9"], "g_v=9 is outside its space"),
         (["simulate", "motor_noise=0"], "motor_noise must be positive"),
@@ -320,7 +320,7 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
             ["recover", "--device", "cuda:0"], "device: 'cuda:0' requested but", marks=WITHOUT_GPU
         ),
         (["demo", "--task", "firefly2d", "device=meta"], "device: 'meta' tensors hold no values"),
-        (["fit", "FILE", "max_iters=3"], "unknown key 'max_iters'; valid keys: n_screen"),
+        (["fit", "FILE", "max_iters=3"], "key 'max_iters' (did you mean 'max_iter'?); valid"),
         (["fit", "FILE", "--free", "g_v,g_x"], "unknown θ parameter 'g_x'"),
         (["fit", "FILE", "--free", "sigma_pos"], "'sigma_pos' is fixed"),
         (["fit", "FILE", "--free", ""], "free: no parameter to fit"),
@@ -957,18 +957,25 @@ def test_fit_space_holds_the_given_values_and_defaults_and_frees_the_rest():
 
 def test_the_simulated_truth_is_the_one_irc_simulate_wrote_for_that_file(tmp_path):
     """A summary of irc simulate names each file's θ*: a file reads its own, a file it does
-    not name none; a summary of another command gives no truth."""
+    not name none; a summary of another command gives no truth. One simulated for another
+    task (fitted without its --model) was refused for its θ names, not for its task."""
     space = firefly2d_theta_space()
     first = {**space.to_dict(space.default()), "g_v": 1.1}
     second = {**first, "g_v": 1.5}
     agents = [{"file": "a.csv", "theta_true": first}, {"file": "b.csv", "theta_true": second}]
-    summary = {"command": "simulate", "agents": agents}
+    summary = {"command": "simulate", "task": "firefly2d", "agents": agents}
     (tmp_path / "summary.json").write_text(json.dumps(summary))
-    truth = recordings._simulated_truth(tmp_path / "b.csv", space)
+    truth = recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d")
     assert float(truth[space.index("g_v")]) == pytest.approx(1.5)
-    assert recordings._simulated_truth(tmp_path / "c.csv", space) is None
+    assert recordings._simulated_truth(tmp_path / "c.csv", space, "firefly2d") is None
+    (tmp_path / "summary.json").write_text(json.dumps({**summary, "task": "reach_and_hold"}))
+    with pytest.raises(
+        ValueError, match=r"b.csv: simulated for task 'reach_and_hold' \(.*\), fitted here as "
+        r"'firefly2d'; expected that task's --model \(and its policy's --checkpoint\)$"
+    ):
+        recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d")
     (tmp_path / "summary.json").write_text(json.dumps({**summary, "command": "fit"}))
-    assert recordings._simulated_truth(tmp_path / "b.csv", space) is None
+    assert recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d") is None
 
 
 def _agent(file: str, converged: bool, truth: dict | None = None) -> dict:

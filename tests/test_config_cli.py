@@ -48,7 +48,7 @@ def test_overrides_reach_nested_fields_with_types():
 @pytest.mark.parametrize(
     "override, message",
     [
-        ("agents.n_agent=3", "unknown key 'agents.n_agent'; valid keys: .*agents.n_agents"),
+        ("agents.n_agent=3", r"unknown key 'agents.n_agent' \(did you mean 'agents.n_agents'\?\)"),
         ("nonsense=1", "unknown key 'nonsense'"),
         ("agents.n_agents=many", "agents.n_agents='many' is not a valid int"),
         ("agents.world=elsewhere", r"agents.world must be one of \('known', 'shared'\)"),
@@ -187,12 +187,12 @@ def test_another_commands_config_file_is_refused_naming_both_commands(given, loa
         load(ROOT / "configs" / given)
     data = {**yaml.safe_load((ROOT / "configs" / given).read_text()), "no_such_key": 1}
     (tmp_path / "typo.yaml").write_text(yaml.safe_dump(data))
-    with pytest.raises(KeyError, match="config: unknown key '[a-z_]+'; valid keys"):
+    with pytest.raises(KeyError, match=r"config: unknown key '[a-z_]+'( \(did .*\))?; valid"):
         load(tmp_path / "typo.yaml")
     own = yaml.safe_load((ROOT / "configs" / loader).read_text())
     misplaced = next(key for key in data if key not in own)
     (tmp_path / "misplaced.yaml").write_text(yaml.safe_dump({**own, misplaced: data[misplaced]}))
-    with pytest.raises(KeyError, match=f"config: unknown key '{misplaced}'; valid keys"):
+    with pytest.raises(KeyError, match=rf"config: unknown key '{misplaced}'( \(did .*\))?; valid"):
         load(tmp_path / "misplaced.yaml")
 
 

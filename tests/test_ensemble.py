@@ -64,7 +64,7 @@ def test_shipped_checkpoint_was_trained_by_the_default_config():
         ("theta_fixed={g_x: 1.0}", "theta_fixed: unknown θ parameter 'g_x'"),
         ("theta_fixed={g_v: 9.0}", "theta_fixed: fixed g_v=9.0 outside its range"),
         ("theta_fixed={g_v: null}", "theta_fixed: g_v: expected a real number, got None"),
-        ("ddpg.n_env=3", "unknown key 'ddpg.n_env'; valid keys: .*ddpg.n_envs"),
+        ("ddpg.n_env=3", r"unknown key 'ddpg.n_env' \(did you mean 'ddpg.n_envs'\?\); valid keys"),
         ("ddpg.bc_weight=-1", "ddpg.bc_weight must be ≥ 0"),
         ("ddpg.pre_activation_weight=-1", "ddpg.pre_activation_weight must be ≥ 0"),
         ("ddpg.loss=sac", r"ddpg.loss must be one of \('ddpg', 'td3'\), got 'sac'"),

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
 from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.recovery import format_parameters, recover_agents
-from irc_torchrl.algorithms.runtime import torch_settings
+from irc_torchrl.algorithms.runtime import finish, torch_settings
 from irc_torchrl.config import Firefly1DConfig, config_to_dict
 from irc_torchrl.data.files import staged, write_json, write_npz, write_text
 from irc_torchrl.envs.firefly1d import Firefly1DModel
@@ -78,6 +78,7 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
         _, recovery, _ = recover_agents(
             model, q, config.agents, config.fit, config.seed, progress=lambda i, n: bar.update(1)
         )
+        finish(bar)
     summary = {
         "command": "demo",
         "task": config.task,

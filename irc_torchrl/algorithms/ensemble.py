@@ -693,8 +693,9 @@ def train_ensemble(
         resume: a checkpoint to continue from. Networks, optimisers, exploration noise,
             counters and RNG states are restored; the replay buffer and the trials in flight
             are not (the buffer is refilled with ``warmup_frames`` from the current policy).
-            The config's learning rates and noise bounds replace the checkpoint's (a warning
-            names those that differ); other networks than the checkpoint's are refused.
+            The config is the run's: a warning names every setting that differs from the
+            checkpoint's (but ``ddpg.total_frames`` and ``device``), learning rates and noise
+            bounds included; other networks than the checkpoint's are refused.
         progress: show a progress bar with the current success rate (the return, for a task
             without success).
         seed: overrides ``config.seed``.
@@ -768,7 +769,7 @@ def _train(
         _restore(opt_actor, ckpt, "optimiser_actor")
         _restore(opt_critic, ckpt, "optimiser_critic")
         _restore(noise, ckpt, "exploration")
-        _apply_schedule(ckpt, d, opt_actor, opt_critic, noise)
+        _apply_schedule(ckpt, config, opt_actor, opt_critic, noise)
         _check_fit(actor, ckpt, "best_actor", ckpt["best_actor"])
         best_actor = ckpt["best_actor"]
         counters = ckpt["counters"]
@@ -1103,36 +1104,49 @@ def _check_budget(ckpt: Mapping[str, Any], d: DDPGConfig) -> None:
         )
 
 
-#: the settings a checkpoint's optimisers and noise carry, which a resumed run takes from its
-#: config instead
-SCHEDULE = ("lr_actor", "lr_critic", "sigma_init", "sigma_end")
+#: the settings a resumed run may change without a word: its budget is why it is resumed, and
+#: another device has a warning of its own
+RESUMED_FREELY = ("ddpg.total_frames", "device")
 
 
 def _apply_schedule(
     ckpt: Mapping[str, Any],
-    d: DDPGConfig,
+    config: Firefly2DConfig,
     opt_actor: torch.optim.Optimizer,
     opt_critic: torch.optim.Optimizer,
     noise: AdditiveGaussianModule,
 ) -> None:
     """Give the restored optimisers and noise the config's rates and noise bounds (the config
-    a resumed run writes is the one it runs), warning where they differ from the checkpoint's."""
-    saved = ckpt["config"].get("ddpg", {})
+    a resumed run writes is the one it runs), warning of every setting that differs from the
+    checkpoint's (the evaluation grid the kept policy was chosen on, the seed, the rates)."""
+    saved, now = _flat(ckpt["config"]), _flat(dataclasses.asdict(config))
     changed = [
-        f"ddpg.{n}: {saved[n]} → {getattr(d, n)}"
-        for n in SCHEDULE
-        if n in saved and saved[n] != getattr(d, n)
+        f"{key}: {saved[key]} → {value}"
+        for key, value in now.items()
+        if key in saved and saved[key] != value and key not in RESUMED_FREELY
     ]
     if changed:
         warnings.warn(
             f"resume: continuing {ckpt['path']} with the config's {'; '.join(changed)}",
             stacklevel=4,
         )
+    d = config.ddpg
     _set_lr(opt_actor, d.lr_actor)
     _set_lr(opt_critic, d.lr_critic)
     noise.sigma_init.fill_(d.sigma_init)
     noise.sigma_end.fill_(d.sigma_end)
     noise.sigma.clamp_(d.sigma_end, d.sigma_init)
+
+
+def _flat(settings: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A config's plain-dict form as ``{"ddpg.lr_actor": 1e-4, ...}``."""
+    flat = {}
+    for key, value in settings.items():
+        if isinstance(value, Mapping) and value:
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def _restore(target: Any, ckpt: Mapping[str, Any], entry: str, weights: Any = None) -> None:

@@ -39,7 +39,12 @@ from irc_torchrl.algorithms.calibration import (
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, check_sandwich, fit_theta, particle_check
 from irc_torchrl.algorithms.recovery import score_recovery
-from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
+from irc_torchrl.algorithms.runtime import (
+    check_workers,
+    finish,
+    resolve_device,
+    torch_settings,
+)
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
@@ -244,12 +249,13 @@ def _in_metres(unit: str, declared: Mapping[str, str] | None) -> str:
     return unit.replace("distance", "m") if metres else unit
 
 
-def _simulated_truth(path: Path, space: ThetaSpace) -> torch.Tensor | None:
+def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor | None:
     """The true θ of a recording written by ``irc simulate`` (its folder's summary), if any.
 
     It is checked in ``space`` before any fitting: a summary of ``irc simulate`` that names
     the recording but mangles its ``theta_true`` is refused, not ignored (the fit would be
-    reported without its truth) nor found out after the fit.
+    reported without its truth) nor found out after the fit; so is one simulated for another
+    task than ``task``, the fit's.
     """
     summary = path.parent / "summary.json"
     try:
@@ -258,6 +264,12 @@ def _simulated_truth(path: Path, space: ThetaSpace) -> torch.Tensor | None:
         return None
     if not isinstance(data, dict) or data.get("command") != "simulate":
         return None
+    simulated_for = data.get("task")
+    if isinstance(simulated_for, str) and simulated_for != task:
+        raise ValueError(
+            f"{path}: simulated for task {simulated_for!r} ({summary}), fitted here as "
+            f"{task!r}; expected that task's --model (and its policy's --checkpoint)"
+        )
     agents = data.get("agents", [])
     if not isinstance(agents, list) or not all(isinstance(a, dict) for a in agents):
         raise ValueError(
@@ -342,7 +354,7 @@ def fit_recordings(
         actor, model, ckpt = load_ensemble_policy(checkpoint, model=model)
         actor = actor.to(target)  # whole: calibration's simulations run it as a policy
         space = fit_space(model.theta_space, free, config.theta)
-        truths = [_simulated_truth(p, space) for p in paths]
+        truths = [_simulated_truth(p, space, model.name) for p in paths]
         start = time.perf_counter()
         units = {str(k): str(v) for k, v in config.units.items()}
         columns = {"time_column": config.time_column, "trial_column": config.trial_column}
@@ -562,7 +574,7 @@ def _fit_batch(
     """:func:`fit_theta` on one batch of recordings as ``config`` says, with a progress bar."""
     desc = f"fit {loss.method}: {held.shape[0]} recording(s) of {held.shape[1]} trials"
     with tqdm(total=config.max_iter, desc=desc, disable=not progress) as bar:
-        return fit_theta(
+        result = fit_theta(
             loss,
             held,
             n_starts=config.n_starts,
@@ -576,6 +588,8 @@ def _fit_batch(
             progress=lambda i, n: bar.update(1),
             workers=config.workers,
         )
+        finish(bar)
+    return result
 
 
 def _worst_trials(recording: TensorDict, log_likelihood: torch.Tensor, n: int = 3) -> list[dict]:

@@ -47,7 +47,7 @@ from irc_torchrl.algorithms.fit import (
     score_check,
 )
 from irc_torchrl.algorithms.recovery import format_parameters, score_recovery
-from irc_torchrl.algorithms.runtime import check_workers, resolve_device, torch_settings
+from irc_torchrl.algorithms.runtime import check_workers, finish, resolve_device, torch_settings
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
@@ -613,7 +613,7 @@ def run_recovery(
 
         trials, summary, _ = recover_firefly2d(config, progress, model, stages)
         for bar in bars.values():
-            bar.close()
+            finish(bar)
     # written once the run has worked: a refused checkpoint or config leaves no folder behind
     write_recovery(trials.cpu(), summary, out, config_to_dict(config))
     stages.prune()

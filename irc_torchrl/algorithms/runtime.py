@@ -1,4 +1,4 @@
-"""Process-wide torch settings for a run, restored when the run ends."""
+"""Process-wide torch settings for a run, restored when the run ends, and its progress bars."""
 
 from __future__ import annotations
 
@@ -6,11 +6,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
+from tqdm.auto import tqdm
 
 from irc_torchrl.checks import resolve_device
 
 __all__ = [
     "check_workers",
+    "finish",
     "float32_default",
     "flushing_denormals",
     "resolve_device",
@@ -69,3 +71,11 @@ def check_workers(workers: int, device: torch.device | str) -> None:
             f"workers: processes share a fit between CPU cores; expected 1 on {device}, "
             f"got {workers}"
         )
+
+
+def finish(bar: tqdm) -> None:
+    """Close ``bar`` at the step its work ended on: a fit converged before its ``max_iter``
+    shows 100%, not a run that seems to have stopped part-way."""
+    bar.total = bar.n
+    bar.refresh()
+    bar.close()
