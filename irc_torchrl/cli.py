@@ -108,7 +108,9 @@ def _train(args: argparse.Namespace) -> int:
     if args.resume is not None and args.config is None:  # resumed, its settings go on
         from irc_torchrl.checkpoint import load_checkpoint
 
-        base = load_checkpoint(args.resume)["config"]
+        # but its device (another machine's, maybe) and task (the library checks it)
+        saved = load_checkpoint(args.resume)["config"]
+        base = {key: value for key, value in saved.items() if key not in ("device", "task")}
     config = load_firefly2d_config(args.config, [*args.overrides, *device], model, base)
     _check_sendable(args.model, "ddpg.collector_workers", config.ddpg.collector_workers)
     result = train_ensemble(
@@ -674,9 +676,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.out = "runs/demo2d" if args.task == "firefly2d" else "runs/demo"
     formatwarning = warnings.formatwarning  # catch_warnings does not restore it
     warnings.formatwarning = partial(_format_warning, args.command)
-    handles_signals = threading.current_thread() is threading.main_thread()
+    # where SIGTERM would end the process as it stands (a host program's handler, an ignored
+    # SIGTERM or a thread's call stays as it is)
+    handles_signals = (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    )
     if handles_signals:
-        terminate = signal.signal(signal.SIGTERM, _terminated)
+        signal.signal(signal.SIGTERM, _terminated)
     try:
         _check_arguments(args)
         return args.run(args)
@@ -692,7 +699,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         warnings.formatwarning = formatwarning
         if handles_signals:
-            signal.signal(signal.SIGTERM, terminate)
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 class _Terminated(KeyboardInterrupt):

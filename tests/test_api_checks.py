@@ -388,6 +388,10 @@ def test_a_belief_filter_refuses_a_transform_before_it_that_rewrites_what_it_rea
             Firefly2DEnv(model=model, batch_size=[2], seed=0), Compose(harmless, EKFBelief(model))
         )
         assert env.observation_spec["belief", "mean"].shape == (2, 5)
+    # first of a Compose that comes first: TorchRL's parent lookup fails there (IndexError)
+    nested = Compose(Compose(EKFBelief(model), BeliefReward(model)))
+    env = TransformedEnv(Firefly2DEnv(model=model, batch_size=[2], seed=0), nested)
+    assert env.rollout(3)["next", "belief", "mean"].shape == (2, 3, 5)
 
 
 def test_a_belief_filter_of_another_task_is_named_on_a_reset_before_any_spec_is_read():

@@ -477,6 +477,11 @@ def test_irc_train_resumed_goes_on_with_the_checkpoints_settings(tmp_path, train
     changed = rf"^resume: continuing {out / 'checkpoint.pt'} with the config's evaluation.n_t"
     with pytest.warns(UserWarning, match=changed + r"heta: 4 → 8$"):
         assert main([*resume, "--out", str(tmp_path / "b"), "evaluation.n_theta=8"]) == 0
+    # not its device: a GPU's run goes on on this machine's (saying so), as the library's does
+    gpu = _edited(trained, tmp_path, lambda p: p["config"].update(device="cuda:0"))
+    resume[2] = gpu
+    with pytest.warns(UserWarning, match="was trained on cuda:0; continuing on cpu"):
+        assert main([*resume, "--out", str(tmp_path / "c")]) == 0
 
 
 def test_checkpoints_fall_at_batch_ends_so_a_resume_misses_no_update(tmp_path, monkeypatch):

@@ -974,6 +974,8 @@ def test_the_simulated_truth_is_the_one_irc_simulate_wrote_for_that_file(tmp_pat
         r"'firefly2d'; expected that task's --model \(and its policy's --checkpoint\)$"
     ):
         recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d")
+    # a file of one's own beside them is not the summary's: no truth, no refusal
+    assert recordings._simulated_truth(tmp_path / "c.csv", space, "firefly2d") is None
     (tmp_path / "summary.json").write_text(json.dumps({**summary, "command": "fit"}))
     assert recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d") is None
 

@@ -254,8 +254,8 @@ def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor |
 
     It is checked in ``space`` before any fitting: a summary of ``irc simulate`` that names
     the recording but mangles its ``theta_true`` is refused, not ignored (the fit would be
-    reported without its truth) nor found out after the fit; so is one simulated for another
-    task than ``task``, the fit's.
+    reported without its truth) nor found out after the fit; so is a recording it names as
+    simulated for another task than ``task``, the fit's.
     """
     summary = path.parent / "summary.json"
     try:
@@ -264,12 +264,6 @@ def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor |
         return None
     if not isinstance(data, dict) or data.get("command") != "simulate":
         return None
-    simulated_for = data.get("task")
-    if isinstance(simulated_for, str) and simulated_for != task:
-        raise ValueError(
-            f"{path}: simulated for task {simulated_for!r} ({summary}), fitted here as "
-            f"{task!r}; expected that task's --model (and its policy's --checkpoint)"
-        )
     agents = data.get("agents", [])
     if not isinstance(agents, list) or not all(isinstance(a, dict) for a in agents):
         raise ValueError(
@@ -278,6 +272,12 @@ def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor |
         )
     for agent in agents:
         if agent.get("file") == path.name and "theta_true" in agent:
+            simulated_for = data.get("task")
+            if isinstance(simulated_for, str) and simulated_for != task:
+                raise ValueError(
+                    f"{path}: simulated for task {simulated_for!r} ({summary}), fitted here as "
+                    f"{task!r}; expected that task's --model (and its policy's --checkpoint)"
+                )
             truth, where = agent["theta_true"], f"{summary}: {path.name}'s theta_true"
             numbers = isinstance(truth, dict) and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in truth.values()

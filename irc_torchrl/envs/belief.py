@@ -165,7 +165,7 @@ class EKFBelief(Transform):
         observation model, and would weigh the rewritten values as the task's. Casts pass."""
         try:
             env = self.parent
-        except AttributeError:  # not in an env: nothing comes before it
+        except (AttributeError, IndexError):  # not in an env, or first of a nested Compose
             return
         read = set(self._read())
         while isinstance(env, TransformedEnv):
