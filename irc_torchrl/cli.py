@@ -452,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=(
             "firefly1d (default): the above, about a minute; firefly2d: the recovery experiment "
             "of `irc recover` on 3 agents × 40 trials with the shipped 2D policy, "
-            "about a minute on 2 cores"
+            "1-2 minutes on 2 cores"
         ),
     )
     demo.add_argument(
