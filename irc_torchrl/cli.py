@@ -430,6 +430,7 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``irc`` command's parser: one subcommand per job, each with its options."""
     parser = argparse.ArgumentParser(
         prog="irc",
         description="Inverse Rational Control: what internal model makes behaviour rational?",

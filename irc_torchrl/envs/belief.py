@@ -220,6 +220,7 @@ class EKFBelief(Transform):
         return next_tensordict
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        """Add the belief's mean and covariance, once the env is checked to be the task's."""
         batch, device = observation_spec.shape, observation_spec.device
         ds = self.model.state_dim
         self._check(observation_spec)
@@ -261,6 +262,7 @@ class BeliefReward(Transform):
         return next_tensordict
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        """Unchanged, once the belief it scores is known to be there."""
         if observation_spec.get("belief", None) is None:
             raise KeyError(
                 "BeliefReward: the env has no belief to score; expected EKFBelief before it, "
@@ -281,6 +283,7 @@ class BeliefFeatures(TensorDictModuleBase):
         self.out_keys = [out_key]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write ``features``: the task's belief features, then θ normalised to [-1, 1]."""
         mean, cov, target, step, theta = (tensordict[k] for k in self.in_keys)
         tensordict.set(self.out_keys[0], self.model.belief_features(mean, cov, target, step, theta))
         return tensordict

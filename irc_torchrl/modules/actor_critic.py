@@ -142,6 +142,7 @@ class FeaturePolicy(nn.Module):
         self.register_buffer("high", bounds.high.to(torch.float32))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """The actor's actions for ``features``, computed in this policy's dtype."""
         dtype, inner = features.dtype, self.dtype or features.dtype
         weights = {k: v.to(inner) for k, v in self.mlp.named_parameters()}
         pre = torch.func.functional_call(self.mlp, weights, (features.to(inner),)).to(dtype)

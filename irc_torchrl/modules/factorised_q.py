@@ -30,6 +30,7 @@ class RandomBasis(nn.Module):
         self.register_buffer("bias", bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The basis ``[1, tanh(x W + b)]``: a constant, then the random features."""
         h = torch.tanh(x @ self.weight.to(x.dtype) + self.bias.to(x.dtype))
         return torch.cat([h.new_ones(*h.shape[:-1], 1), h], -1)
 
@@ -73,6 +74,7 @@ class FactorisedQ(nn.Module):
 
     @property
     def n_actions(self) -> int:
+        """How many discrete actions Q scores."""
         return self.weight.shape[0]
 
     def design(self, features: torch.Tensor) -> torch.Tensor:
@@ -81,6 +83,7 @@ class FactorisedQ(nn.Module):
         return regressors(phi, self.psi(features[..., self.belief_dim :]))
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """``Q(b, a; θ)`` of every action, ``[*B, n_actions]``."""
         phi = self.phi(features[..., : self.belief_dim])
         psi = self.psi(features[..., self.belief_dim :])
         # contract ψ first: never materialise the [*B, a, k, m] outer product

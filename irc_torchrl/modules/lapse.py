@@ -49,6 +49,7 @@ class Lapse(TensorDictModuleBase):
             )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Replace lapsed action components when exploring (never when acting greedily)."""
         if not self.lapse.any() or exploration_type() not in (ExplorationType.RANDOM, None):
             return tensordict
         action = tensordict.get(self.action_key, None)

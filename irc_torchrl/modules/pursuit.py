@@ -44,6 +44,7 @@ class BeliefPursuit(TensorDictModuleBase):
         self.out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write the controller's ``action`` for the believed target."""
         model = self.model
         mean, target, theta = (tensordict[k] for k in self.in_keys)
         space = model.theta_space
