@@ -690,7 +690,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return args.run(args)
     except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        print(f"irc {args.command}: error: {message}", file=sys.stderr)
+        print(f"irc {args.command}: error: {_unprefixed(args.command, message)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:  # Ctrl-C or kill: what was written before stays as it was
         left = _RESUME[args.command].format(out=getattr(args, "out", None))
@@ -744,7 +744,13 @@ def _recording(item: str) -> bool:
 def _format_warning(command: str, message: Warning | str, *args: Any, **kwargs: Any) -> str:
     """A warning of ``irc command`` as one line, as its errors are (not the Python source
     line that raised it)."""
-    return f"irc {command}: warning: {message}\n"
+    return f"irc {command}: warning: {_unprefixed(command, message)}\n"
+
+
+def _unprefixed(command: str, message: object) -> str:
+    """A library message without the ``command: `` it leads with (``report: no summary.json``
+    of ``report_run``), which the ``irc command:`` before it already says."""
+    return str(message).removeprefix(f"{command}: ")
 
 
 if __name__ == "__main__":

@@ -113,7 +113,7 @@ def test_a_commands_warnings_are_one_line_like_its_errors(tmp_path):
     )
     ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     lines = ran.stderr.splitlines()
-    assert lines[0] == "irc report: warning: report: no trials/ in here"
+    assert lines[0] == "irc report: warning: no trials/ in here"
     assert "UserWarning: after the command" in lines[1]  # Python's own form again
 
 

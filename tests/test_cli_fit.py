@@ -292,7 +292,7 @@ def test_report_draws_training_curves(tmp_path):
 
 def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 2
-    assert "irc report: error: report: no summary.json in" in capsys.readouterr().err
+    assert "irc report: error: no summary.json in" in capsys.readouterr().err
     (tmp_path / "summary.json").write_text('{"command": "simulate", "agents": []}')
     assert main(["report", str(tmp_path)]) == 2  # nothing to draw, said once
     err = capsys.readouterr().err
