@@ -370,3 +370,17 @@ def test_a_fit_converged_early_ends_its_progress_bar_at_100_percent():
         bar.update(41)
         finish(bar)
     assert shown.getvalue().rstrip().split("\r")[-1].startswith("fit: 100%|##########| 41/41 ")
+
+
+def test_a_notebook_progress_bar_ended_early_fills_its_widget():
+    """tqdm.notebook draws the bar as a widget whose length is set only when the bar is made,
+    so a fit converged early showed a bar half full beside '100%'."""
+    from types import SimpleNamespace
+
+    from irc_torchrl.algorithms.runtime import finish
+
+    widget = SimpleNamespace(max=80)
+    bar = SimpleNamespace(n=41, total=80, refresh=lambda: None, close=lambda: None)
+    bar.container = SimpleNamespace(children=(None, widget, None))
+    finish(bar)
+    assert (bar.total, widget.max) == (41, 41)

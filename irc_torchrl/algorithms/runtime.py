@@ -75,7 +75,10 @@ def check_workers(workers: int, device: torch.device | str) -> None:
 
 def finish(bar: tqdm) -> None:
     """Close ``bar`` at the step its work ended on: a fit converged before its ``max_iter``
-    shows 100%, not a run that seems to have stopped part-way."""
+    shows 100%, not a run that seems to have stopped part-way (in a notebook its widget's
+    length too, which tqdm sets only when the bar is made)."""
     bar.total = bar.n
+    if hasattr(bar, "container"):  # tqdm.notebook: (description, widget, counts)
+        bar.container.children[1].max = bar.n
     bar.refresh()
     bar.close()
