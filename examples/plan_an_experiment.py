@@ -8,7 +8,7 @@ trials at their own θ predicts it without a fit
 200 trials per agent, the median width over the agents of each parameter's interval, and the
 fewest of those trial counts that pins it to a tenth of its prior range.
 
-    python examples/plan_an_experiment.py --out runs/plan   # about 60 s on one core
+    python examples/plan_an_experiment.py --out runs/plan   # about a minute on one core
 
 The widths fall about as one over the square root of the trials. The gains are read off every
 action and are pinned by 25 trials; with the shipped policy σ_ω is too, the other noises need

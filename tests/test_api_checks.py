@@ -380,10 +380,7 @@ def test_a_belief_filter_refuses_a_transform_before_it_that_rewrites_what_it_rea
         env.reset()
     with pytest.raises(ValueError, match=message):
         _ = env.observation_spec
-    for harmless in (
-        DTypeCastTransform(torch.float32, torch.float64, ["observation"]),
-        StepCounter(),
-    ):
+    for harmless in (DTypeCastTransform(torch.float32, torch.float64), StepCounter()):
         env = TransformedEnv(
             Firefly2DEnv(model=model, batch_size=[2], seed=0), Compose(harmless, EKFBelief(model))
         )
@@ -392,6 +389,24 @@ def test_a_belief_filter_refuses_a_transform_before_it_that_rewrites_what_it_rea
     nested = Compose(Compose(EKFBelief(model), BeliefReward(model)))
     env = TransformedEnv(Firefly2DEnv(model=model, batch_size=[2], seed=0), nested)
     assert env.rollout(3)["next", "belief", "mean"].shape == (2, 3, 5)
+
+
+@pytest.mark.parametrize("cast", [["observation"], ["theta"], ["state", "observation", "target"]])
+def test_a_belief_filter_refuses_a_cast_of_some_of_what_it_reads(cast):
+    """A cast of the observation alone passed the upstream check and failed in the filter's
+    update ('expected scalar type Float but found Double'); a cast of all of them runs."""
+    model = Firefly2DModel()
+    env = TransformedEnv(
+        Firefly2DEnv(model=model, batch_size=[2], seed=0),
+        Compose(DTypeCastTransform(torch.float32, torch.float64, cast), EKFBelief(model)),
+    )
+    message = r"^EKFBelief: the env's '\w+' is torch.float\d+, its 'state' torch.float\d+; expected"
+    with pytest.raises(ValueError, match=message):
+        env.rollout(2)
+    whole = DTypeCastTransform(torch.float32, torch.float64)
+    env = TransformedEnv(Firefly2DEnv(model=model, batch_size=[2], seed=0), whole)
+    env.append_transform(EKFBelief(model))
+    assert env.rollout(2)["next", "belief", "cov"].dtype == torch.float64
 
 
 def test_a_belief_filter_of_another_task_is_named_on_a_reset_before_any_spec_is_read():

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from conftest import default_dtype
 from tensordict import TensorDict
 from test_checkpoint import tiny
 from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
@@ -126,6 +127,30 @@ def test_ddpg_loss_and_soft_update_move_the_target_networks():
     moved = [not torch.equal(before[k], after[k]) for k in before.keys(True, True)]
     assert any(moved)
     assert isinstance(losses, TensorDict)
+
+
+def test_actor_and_critic_take_torchrl_exploration_noise_under_a_float64_default():
+    """Under ``torch.set_default_dtype(torch.float64)`` TorchRL's AdditiveGaussianModule adds
+    float64 noise: DDPGLoss failed in the float32 critic ('mat1 and mat2 must have the same
+    dtype'). Inputs reach each network in its weights' dtype; the values are the float32
+    action's."""
+    from tensordict.nn import TensorDictSequential
+    from torchrl.modules import AdditiveGaussianModule
+
+    model = Firefly2DModel()
+    torch.manual_seed(0)
+    actor, critic = make_actor(model, (16,)), make_critic(model, (16,))
+    env = make_train_env(model, 4, seed=0)
+    with default_dtype(torch.float64):
+        noise = AdditiveGaussianModule(env.action_spec_unbatched, sigma_init=0.3)
+        batch = env.rollout(3, TensorDictSequential(actor, noise), break_when_any_done=False)
+        assert batch["action"].dtype == torch.float64
+        losses = DDPGLoss(actor, critic)(batch.reshape(-1))
+    assert torch.isfinite(losses["loss_value"]) and torch.isfinite(losses["loss_actor"])
+    as_float32 = batch.clone().set("action", batch["action"].float())
+    torch.testing.assert_close(
+        critic(batch.clone())["state_action_value"], critic(as_float32)["state_action_value"]
+    )
 
 
 def _last_actor_and_beliefs(result):

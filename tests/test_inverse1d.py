@@ -272,6 +272,16 @@ def test_loss_module_forward(firefly1d_model, trained_q, small_trials):
     torch.testing.assert_close(loss.theta()[0].float(), firefly1d_model.theta_space.default())
     with pytest.raises(ValueError, match="world"):
         make_loss(firefly1d_model, trained_q, 3, "mine")
+    # an optimiser's step gone to NaN gave loss_nll = nan without a word
+    with torch.no_grad():
+        loss.theta_free[1, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"^theta: \w+=nan is outside its space"):
+        loss(small_trials)
+    with torch.no_grad():
+        loss.theta_free[1, 0] = 0.0
+        loss.nuisance[2] = float("nan")
+    with pytest.raises(ValueError, match=r"^nuisance: expected finite values"):
+        loss(small_trials)
 
 
 # --- Fisher -------------------------------------------------------------------------------

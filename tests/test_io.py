@@ -17,6 +17,7 @@ from tensordict import TensorDict
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.data.io import read_trials, trials_to_columns, write_trials
+from irc_torchrl.data.trajectories import recorded_stops
 from irc_torchrl.envs import Firefly1DModel, Firefly2DModel
 
 
@@ -159,13 +160,13 @@ def test_trials_of_one_step_round_trip(tmp_path, model1d, suffix):
         read_trials(write_trials(trials, tmp_path / f"t{suffix}", model1d), model1d), trials
     )
     # its samples read as half a model step apart, each trial resamples to every other
-    # sample, and a one-sample trial stays one step
+    # sample and its last one (the stop), and a one-sample trial stays one step
     columns = trials_to_columns(trials, model1d)
     columns["time"] = columns["time"] / 2
     _write_raw(columns, tmp_path / "half.csv")
     with pytest.warns(UserWarning, match="resampled every trial"):
         half = read_trials(tmp_path / "half.csv", model1d)
-    assert torch.equal(half["mask"].sum(-1), (trials["mask"].sum(-1) - 1) // 2 + 1)
+    assert torch.equal(half["mask"].sum(-1), trials["mask"].sum(-1) // 2 + 1)
 
 
 def test_missing_theta_columns_take_the_space_default(tmp_path, model2d, trials2d):
@@ -342,8 +343,9 @@ def test_an_agent_recorded_acting_twice_a_step_reads_with_the_action_at_each_ste
     assert (columns["time"][::2] - 3.3 > np.arange(8)).any()  # the hair past
     with pytest.warns(UserWarning, match="resampled"):
         back = read_trials(_write_recording(columns, tmp_path / "twice.csv"), model1d)
-    assert back["action"].tolist() == [[2] * 8]
-    np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.arange(8), atol=1e-6)
+    # the last sample, a stop 7.5 s in, held by the step after it (8 s)
+    assert back["action"].tolist() == [[2] * 8 + [1]]
+    np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.arange(9), atol=1e-6)
 
 
 def test_a_recording_five_percent_off_the_model_step_is_resampled_linearly(tmp_path, model2d):
@@ -361,19 +363,58 @@ def test_a_recording_five_percent_off_the_model_step_is_resampled_linearly(tmp_p
     np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.cos(0.3) * grid, atol=1e-6)
 
 
+@pytest.mark.parametrize("late", [0.0, 0.05])
+def test_a_trial_resampled_off_its_grid_keeps_its_last_sample_the_stop(tmp_path, model2d, late):
+    """A 60 Hz rig whose trial ends (at the stop) between two steps of the 0.1 s grid lost
+    every sample after the grid's last step before it: the stop, and with it what the goal
+    radius is fitted from (a converged, confident, wrong θ̂). The grid now runs to the step
+    at or after the last sample, which holds it."""
+    columns = _hand_made([0, 1], steps=80, dt=1 / 60, start=late)
+    columns["a_v"][79::80] = 0.0  # each trial stops at its last sample, 79/60 s in
+    _write_raw(columns, tmp_path / "rig.csv")
+    with pytest.warns(UserWarning, match="resampled every trial"):
+        back = read_trials(tmp_path / "rig.csv", model2d)
+    assert back.shape == (2, 15)  # 1.3167 s: 14 steps of 0.1 s, and the one holding the stop
+    assert recorded_stops(back, model2d)[:, -1].all()
+    assert back["action"][:, -1, 0].tolist() == [0.0, 0.0]
+    torch.testing.assert_close(back["action"][:, -2, 0], torch.full((2,), 0.5 / 1.2))
+
+
+def test_a_discrete_stop_between_two_model_steps_is_kept(tmp_path, model1d):
+    """Sampled every half step, a trial of 'left' then a stop half a step later read as one
+    step of 'left': the stop was dropped, and nothing was said."""
+    columns = {
+        "trial": np.array([0.0, 0.0, 1.0, 1.0, 1.0]),
+        "time": np.array([0.0, 0.5, 10.0, 10.5, 11.0]),
+        "x": np.array([0.0, -0.5, 0.0, 0.5, 1.0]),
+        "action": np.array([0, 1, 2, 2, 1]),
+        "target_x": np.array([2.0, 2.0, 2.0, 2.0, 2.0]),
+    }
+    with pytest.warns(UserWarning, match="resampled every trial"):
+        back = read_trials(_write_recording(columns, tmp_path / "half.csv"), model1d)
+    assert back["mask"].sum(-1).tolist() == [2, 2]
+    assert recorded_stops(back, model1d)[:, 1].all()
+
+
 def test_the_same_recording_in_m_cm_and_mm_reads_alike(tmp_path, model2d):
-    """Positions, targets and speeds in cm or mm (time in ms) declared so read as in metres."""
+    """Positions, targets, speeds and θ columns in cm or mm (time in ms, angular speeds in
+    degrees) declared so read as in metres (θ columns' units were refused as unknown)."""
     metres = _hand_made([0, 1])
-    distances = ("x", "y", "target_x", "target_y", "v")
+    rows = len(metres["time"])
+    metres |= {"theta.g_v": np.full(rows, 1.3), "theta.goal_radius": np.full(rows, 0.45)}
+    metres["theta.g_w"] = np.full(rows, 1.1)
+    distances = ("x", "y", "target_x", "target_y", "theta.goal_radius", "v", "theta.g_v")
     expected = read_trials(_write_recording(metres, tmp_path / "m.csv"), model2d)
     for unit, factor in (("cm", 100.0), ("mm", 1000.0)):
         columns = {k: v * factor if k in distances else v for k, v in metres.items()}
         columns["time"] = metres["time"] * 1000.0
-        units = {k: unit for k in distances[:-1]} | {"v": f"{unit}/s", "time": "ms"}
+        columns["theta.g_w"] = np.degrees(metres["theta.g_w"])
+        units = {k: unit for k in distances[:5]} | {k: f"{unit}/s" for k in distances[5:]}
+        units |= {"time": "ms", "theta.g_w": "deg/s"}
         back = read_trials(
             _write_recording(columns, tmp_path / f"{unit}.csv"), model2d, units=units
         )
-        for key in ("state", "target", "time", "mask"):
+        for key in ("state", "target", "time", "mask", "task_theta"):
             torch.testing.assert_close(back[key], expected[key], rtol=1e-6, atol=1e-6, msg=key)
 
 
@@ -1028,6 +1069,30 @@ def test_trials_going_on_past_the_stop_are_read_with_a_warning(tmp_path, model2d
     )
     with pytest.warns(UserWarning, match=message):
         read_trials(_write_recording(longer, tmp_path / "longer.csv"), model2d)
+
+
+def test_a_chosen_stop_with_steps_after_it_is_refused_naming_the_file_and_trial(
+    tmp_path, model1d, trials1d
+):
+    """A discrete task's stop ends its trial; the refusal named neither the file nor the
+    recording's trial number ('trials: field 'action' stops at agent 0, trial 0, step 1')."""
+    from irc_torchrl.envs.firefly1d import STOP
+
+    columns = trials_to_columns(trials1d, model1d)
+    columns["trial"] = columns["trial"] + 7  # the recording's own numbering
+    rows = _rows(columns, 7)
+    after = {name: values[rows[-1:]].repeat(2) for name, values in columns.items()}
+    after["time"] = after["time"] + model1d.dt * np.arange(1, 3)
+    longer = {n: np.concatenate([v[rows], after[n], v[rows[-1] + 1 :]]) for n, v in columns.items()}
+    assert longer["action"][rows[-1]] == STOP  # the trial's own stop, then two more steps
+    path = _write_recording(longer, tmp_path / "session.csv")
+    stop = columns["time"][rows[-1]]
+    message = (
+        rf"^{path}: trial 7: field 'action' stops {stop:g} s into it, yet 2 steps follow; the "
+        "task ends a trial at its stop, so cut the trial there$"
+    )
+    with pytest.raises(ValueError, match=message):
+        read_trials(path, model1d)
 
 
 def test_a_recording_that_hardly_moves_or_jitters_is_not_taken_for_a_unit_mistake(

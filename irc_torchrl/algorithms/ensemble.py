@@ -141,7 +141,7 @@ class DDPGConfig:
     #: ``smoothness_sigma`` (state units). A policy that switches from going to stopping within
     #: the spread of the agent's belief makes Algorithm 2's likelihood a cusp there. With
     #: gamma=0.99, 10 and 0.05 made that likelihood nearly exact (9.5 nats per agent from a
-    #: particle filter's, against 81) but the stop then says less of θ: errors on the noises
+    #: particle filter's, against 68-81) but the stop then says less of θ: errors on the noises
     #: 2-3× the shipped policy's, success 80.9% (docs/benchmarks.md); 0: off
     smoothness_weight: float = 0.0
     smoothness_sigma: float = 0.05

@@ -784,8 +784,10 @@ def particle_check(
     ``approximation_gap`` that minus the loss's own log-likelihood (what its approximation
     loses) and ``min_effective_particles`` the fewest effective particles of any trial (near
     1: too few particles). A gap that differs between θ̂ and nearby θ biases θ̂; on the 2D
-    recovery the marginal intervals of agents with a gap under 10 nats at θ̂ covered the
-    truth in 0.82–1.0 of them per parameter, the others' in 0.72–0.93 (docs/recovery2d.md).
+    recovery with the shipped policy the marginal intervals of agents with a gap under 10 nats
+    at θ̂ covered the truth in 0.82–1.0 of them per parameter, the others' in 0.86–0.97
+    (docs/recovery2d.md): the gap says where the approximation is coarse, not by itself that
+    the intervals are wrong.
     Both run in float64 (a float32 filter moves the gap by tens of nats).
     """
     trials, _, _ = _checked_point(loss, trials, theta, nuisance, 1)

@@ -120,10 +120,10 @@ def read_trials(
     seconds = reader is _read_nwb
     trials = _on_model_grid(trials, model, source, time_column, trial_column, resample, seconds)
     held = _pack(trials, model, time_column, trial_column)
+    check_stops(held, model, source)  # before validate_trials: by the file and trial number
     validate_trials(held, model)
     check_kinematics(held, model, source)
     check_targets(held, model, source)
-    check_stops(held, model, source)
     return held
 
 
@@ -470,8 +470,10 @@ def _on_model_grid(
 
 
 def _grid_steps(duration: float, dt: float) -> int:
-    """How many steps of ``dt`` a trial of ``duration`` seconds takes on the model's grid."""
-    return int(np.floor(duration / dt + 1e-6)) + 1
+    """How many steps of ``dt`` a trial of ``duration`` seconds takes on the model's grid: up
+    to its last sample or just past it, which then holds that sample (the stop, which a grid
+    ending short of it would drop)."""
+    return int(np.ceil(duration / dt - 1e-6)) + 1
 
 
 def _refuse_long(

@@ -31,9 +31,13 @@ _WRAP_SLACK = 1e-5
 
 
 def column_kinds(model: TaskModel, time_column: str = "time") -> dict[str, str]:
-    """The model's unit of every column that has one (actions are dimensionless: absent)."""
+    """The model's unit of every column that has one (actions are dimensionless: absent),
+    ``theta.*`` columns too where their parameter's unit is one :data:`UNITS` converts."""
     kinds = dict(zip(model.state_names, model.state_units, strict=True))
     kinds.update({name: "distance" for name in model.target_names})
+    kinds.update(
+        {f"theta.{p.name}": p.unit for p in model.theta_space.parameters if p.unit in UNITS}
+    )
     kinds[time_column] = "s"
     return kinds
 

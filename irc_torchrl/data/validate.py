@@ -379,18 +379,24 @@ def _check_action_driven(
 
 
 def check_stops(held: TensorDictBase, model: TaskModel, source: str) -> None:
-    """Warn where trials go on more than :data:`AFTER_STOP` steps past the task's stop rule
-    (a reward period, the agent standing still): each such step is scored as the agent's
-    choice to go on, which its policy never made (a discrete task's are refused outright)."""
-    if isinstance(model.action_spec, Categorical):
-        return
+    """Refuse a trial that goes on after a chosen stop (a discrete action: the task ends the
+    trial there), and warn where trials go on more than :data:`AFTER_STOP` steps past a
+    continuous task's stop rule (a reward period, the agent standing still): each such step
+    is scored as the agent's choice to go on, which its policy never made."""
     mask, stopped = held["mask"], recorded_stops(held, model)
     first = stopped.long().argmax(-1)  # the first stop (0 where none: masked out below)
     after = mask.sum(-1) - 1 - first
-    late = stopped.any(-1) & (after > AFTER_STOP)
+    chosen = isinstance(model.action_spec, Categorical)
+    late = stopped.any(-1) & (after > (0 if chosen else AFTER_STOP))
     if late.any():
         i = int(late.nonzero()[0])
         label, at = held["trial"][i, 0].item(), held["time"][i, first[i]].item()
+        if chosen:
+            raise ValueError(
+                f"{source}: trial {label}: field 'action' stops {at:.6g} s into it, yet "
+                f"{int(after[i])} steps follow; the task ends a trial at its stop, so cut the "
+                "trial there"
+            )
         warnings.warn(
             f"{source}: {int(late.sum())} of {len(mask)} trials go on past the task's stop "
             f"(trial {label}: {int(after[i])} steps after its stop at {at:.6g} s into it), each "

@@ -158,6 +158,14 @@ class EKFBelief(Transform):
                     f"({self.model.name}) [..., {dim}]; expected the env's own task model"
                 )
         self._require(present, *read)
+        dtypes = {key: observation_spec[key].dtype for key in read}
+        other = next((key for key in read if dtypes[key] != dtypes["state"]), None)
+        if other is not None:  # a cast of some of them (DTypeCastTransform with in_keys)
+            raise ValueError(
+                f"EKFBelief: the env's {other!r} is {dtypes[other]}, its 'state' "
+                f"{dtypes['state']}; expected one dtype for all the filter reads "
+                f"({', '.join(map(repr, read))}): cast all of them, or none"
+            )
 
     def _check_upstream(self) -> None:
         """Refuse a transform before the filter that rewrites what it reads (an

@@ -66,6 +66,22 @@ def _widths(hidden: Sequence[int]) -> list[int]:
     return [count("hidden", width) for width in hidden]
 
 
+def _float32_network(mlp: MLP) -> MLP:
+    """``mlp`` in float32, as the env's states are, whatever torch's default dtype; its inputs
+    cast to its weights' dtype, so that a float64 action (TorchRL's exploration noise drawn in
+    a float64 default) or a float64 env's belief reach it in what it computes in."""
+    mlp = mlp.float()
+    mlp.register_forward_pre_hook(_cast_to_weights)
+    return mlp
+
+
+def _cast_to_weights(module: nn.Module, inputs: tuple[torch.Tensor, ...]) -> tuple:
+    """The inputs in the dtype of the weights the module runs with (float64 ones swapped in
+    by :class:`FeaturePolicy`'s ``functional_call`` too; an MLP's first layer is linear)."""
+    dtype = module[0].weight.dtype
+    return tuple(x.to(dtype) for x in inputs)
+
+
 def make_actor(
     model: TaskModel, hidden: Sequence[int] = (64, 64, 64), activation: str = "softplus"
 ) -> TensorDictSequential:
@@ -76,10 +92,10 @@ def make_actor(
         out_features=_continuous_actions(model, "make_actor"),
         num_cells=_widths(hidden),
         activation_class=_activation(activation),
-    ).float()  # as the env's states, whatever torch's default dtype
+    )
     return TensorDictSequential(
         BeliefFeatures(model),
-        Actor(mlp, in_keys=["features"], out_keys=["param"]),
+        Actor(_float32_network(mlp), in_keys=["features"], out_keys=["param"]),
         TanhModule(in_keys=["param"], out_keys=["action"], spec=spec),
     )
 
@@ -93,10 +109,10 @@ def make_critic(
         out_features=1,
         num_cells=_widths(hidden),
         activation_class=_activation(activation),
-    ).float()
+    )
     return TensorDictSequential(
         BeliefFeatures(model),
-        ValueOperator(mlp, in_keys=["features", "action"]),
+        ValueOperator(_float32_network(mlp), in_keys=["features", "action"]),
     )
 
 

@@ -447,6 +447,17 @@ class InverseRationalLoss(LossModule):
         ``[n_agents, n_trials, ·]``; ``None``: the action model's initial one, nothing to
         check), else a one-line error naming the field."""
         trials = self.validate(trials)
+        self._check_point(theta, nuisance, trials, per_trial)
+        return trials
+
+    def _check_point(
+        self,
+        theta: torch.Tensor,
+        nuisance: torch.Tensor | None,
+        trials: TensorDictBase,
+        per_trial: bool = False,
+    ) -> None:
+        """:meth:`checked`'s check of θ and the nuisance for validated ``trials``."""
         n_agents, dn = trials.shape[0], self.action_model.nuisance_init.numel()
 
         def rows(x: torch.Tensor) -> tuple[int, ...]:
@@ -461,7 +472,7 @@ class InverseRationalLoss(LossModule):
                 f"got {list(theta.shape)}"
             )
         if nuisance is None:
-            return trials
+            return
         if not isinstance(nuisance, torch.Tensor) or not nuisance.is_floating_point():
             raise TypeError(f"nuisance: expected a float tensor [{n_agents}, {dn}]")
         if nuisance.shape != (*rows(nuisance), dn):
@@ -472,12 +483,11 @@ class InverseRationalLoss(LossModule):
             raise ValueError(
                 "nuisance: expected finite values (the fit's coordinates), got NaN or inf"
             )
-        return trials
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         """``loss_nll`` of held trials ``[n_agents, n_trials, T]`` (one agent's may be
-        ``[n_trials, T]``) and each agent's ``log_likelihood``; malformed trials are refused
-        first (:meth:`validate`)."""
+        ``[n_trials, T]``) and each agent's ``log_likelihood``; malformed trials, and a θ or
+        nuisance an optimiser's step sent to NaN, are refused first (:meth:`checked`)."""
         n_agents = self.theta_free.shape[0]
         trials = self.validate(tensordict)
         if trials.shape[0] != n_agents:
@@ -486,6 +496,7 @@ class InverseRationalLoss(LossModule):
                 f"n_agents), got {list(tensordict.batch_size)}"
             )
         theta = self.theta(self.theta_free)
+        self._check_point(theta.detach(), self.nuisance.detach(), trials)
         log_likelihood = self.log_likelihood(theta, self.nuisance, trials)
         return TensorDict(
             loss_nll=-log_likelihood.sum(), log_likelihood=log_likelihood.detach(), batch_size=[]
