@@ -670,7 +670,8 @@ MALFORMED = [
     ("time goes back", "2d", ".csv", _swap_times, ValueError,
      r"trial 2, field 'time': time goes from 0\.2 s to 0\.1 s.*strictly increasing"),
     ("two sessions pooled", "2d", ".csv", _pooled, ValueError,
-     r"field 'trial': trial 0 is on rows 0–\d+ and again from row \d+; expected each trial's"),
+     r"field 'trial': trial 0 is on rows 1–\d+ and again from row \d+ \(the table's rows "
+     r"counted from 1, after a CSV's header\); expected each trial's"),
     ("repeated time", "2d", ".csv", _repeat_time, ValueError,
      r"trial 3, field 'time': time goes from 0\.1 s to 0\.1 s at sample 2"),
     ("missing column", "2d", ".csv", _rename("heading", None), KeyError,
@@ -733,7 +734,8 @@ MALFORMED = [
     ("misnamed theta", "2d", ".csv", _rename("theta.g_v", "theta.gv"), KeyError,
      r"column 'theta.gv' names no θ parameter; did you mean 'theta.g_v'\?"),
     ("nan trial number", "2d", ".csv", _set(1, 0, "trial", np.nan), ValueError,
-     r"field 'trial' is nan at row \d+; expected a trial number on every row"),
+     r"field 'trial' is nan at row \d+ \(the table's rows counted from 1, after a CSV's "
+     r"header\); expected a trial number on every row"),
     ("no rows", "2d", ".csv", _no_rows, ValueError,
      r"the file holds no samples; expected one row per time step"),
     ("empty archive", "2d", ".npz", lambda c: {}, ValueError, r"the file holds no samples"),
@@ -766,6 +768,8 @@ def test_malformed_recordings_are_refused_naming_trial_and_field(
          r"line 3, column 'x': 'left' is not a number"),
         ("ragged.csv", b"trial,time,x\n0,0,1\n0,0.1\n", ValueError,
          r"line 3 has 2 values; expected 3"),
+        ("blank.csv", b"trial,time,x\n\n0,0,1\n\n0,0.1,left\n", ValueError,
+         r"line 5, column 'x': 'left' is not a number"),  # the file's line, blank ones counted
         ("data.txt", b"1 2 3\n", ValueError, r"unknown format '\.txt'; expected \.npz, \.csv"),
     ],
 )  # fmt: skip
@@ -773,6 +777,16 @@ def test_files_that_are_not_what_their_suffix_says(tmp_path, model2d, name, cont
     (tmp_path / name).write_bytes(content)
     with pytest.raises(error, match=match):
         read_trials(tmp_path / name, model2d)
+
+
+def test_a_trial_on_two_blocks_of_rows_is_named_by_the_tables_rows_from_1(tmp_path, model1d):
+    """The rows were counted from 0, where a spreadsheet counts from 1 (and the CSV reader's
+    own messages give the file's lines)."""
+    path = tmp_path / "pooled.csv"
+    path.write_text("trial,time,x,action,target_x\n0,0,0,2,3\n0,1,1,2,3\n1,0,0,2,3\n0,2,2,1,3\n")
+    message = r"trial 0 is on rows 1–2 and again from row 4 \(the table's rows counted from 1"
+    with pytest.raises(ValueError, match=message):
+        read_trials(path, model1d)
 
 
 def test_an_npz_of_python_objects_is_refused_without_unpickling(tmp_path, model2d):
@@ -784,6 +798,11 @@ def test_an_npz_of_python_objects_is_refused_without_unpickling(tmp_path, model2
 def test_a_folder_that_is_not_a_memmap(tmp_path, model2d):
     (tmp_path / "folder").mkdir()
     with pytest.raises(ValueError, match="not a TensorDict memmap folder"):
+        read_trials(tmp_path / "folder", model2d)
+    for name in ("b.csv", "a.csv", "notes.txt"):  # a session's folder: its files, named
+        (tmp_path / "folder" / name).write_text("trial,time\n")
+    message = r"folder: a folder of recordings \(a.csv, b.csv\), not a .* give the files \(e.g. "
+    with pytest.raises(ValueError, match=message + r".*folder/\*\.csv\)$"):
         read_trials(tmp_path / "folder", model2d)
 
 

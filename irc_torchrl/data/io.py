@@ -193,6 +193,14 @@ Writer = Callable[[Columns, Path, TaskModel], None]
 
 def _reader(path: Path) -> Reader:
     if path.is_dir():
+        inside = sorted(f for f in path.iterdir() if f.suffix in SUFFIXES)
+        if inside and not (path / "meta.json").is_file():  # a session's folder of recordings
+            names = ", ".join(f.name for f in inside[:3]) + (", ..." if len(inside) > 3 else "")
+            raise ValueError(
+                f"{path}: a folder of recordings ({names}), not a TensorDict memmap folder; "
+                f"expected one recording per path: give the files (e.g. "
+                f"{path}/*{inside[0].suffix})"
+            )
         return _read_memmap
     readers = dict(zip(SUFFIXES, (_read_npz, _read_csv, _read_nwb), strict=True))
     if path.suffix not in readers:
@@ -251,13 +259,15 @@ def _write_npz(columns: Columns, tmp: Path, model: TaskModel) -> None:
 def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: Excel's byte-order mark
-            rows = [row for row in csv.reader(f) if row]
+            reader = csv.reader(f)  # with each row's line in the file, blank lines skipped
+            read = [(reader.line_num, row) for row in reader if row]
     except (UnicodeDecodeError, csv.Error) as err:
         raise ValueError(
             f"{path}: not a CSV text file ({err}); expected comma-separated values"
         ) from err
-    if not rows:
+    if not read:
         return {}
+    lines, rows = zip(*read, strict=True)
     header = [name.strip() for name in rows[0]]
     if len(header) == 1 and any(mark in header[0] for mark in ";\t|"):
         raise ValueError(
@@ -272,20 +282,20 @@ def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str)
         )
     used = _used_columns(model, time_column, trial_column)
     values = np.full((len(rows) - 1, len(header)), np.nan)
-    for r, row in enumerate(rows[1:], start=2):
+    for r, (line, row) in enumerate(zip(lines[1:], rows[1:], strict=True)):
         if len(row) != len(header):
             raise ValueError(
-                f"{path}: line {r} has {len(row)} values; expected {len(header)}, one per column "
-                f"of the header {header}"
+                f"{path}: line {line} has {len(row)} values; expected {len(header)}, one per "
+                f"column of the header {header}"
             )
         for c, cell in enumerate(row):
             if not used(header[c]):
                 continue
             try:
-                values[r - 2, c] = float(cell) if cell.strip() else np.nan
+                values[r, c] = float(cell) if cell.strip() else np.nan
             except ValueError:
                 raise ValueError(
-                    f"{path}: line {r}, column {header[c]!r}: {cell!r} is not a number; "
+                    f"{path}: line {line}, column {header[c]!r}: {cell!r} is not a number; "
                     "expected numbers (empty or NaN for a gap)"
                 ) from None
     return {name: values[:, c] if used(name) else np.empty(0) for c, name in enumerate(header)}

@@ -120,6 +120,10 @@ def check_columns(
             )
 
 
+#: how a recording's rows are numbered in messages (a CSV's data row 1 is its file's line 2)
+_ROWS = "(the table's rows counted from 1, after a CSV's header)"
+
+
 def split_trials(
     columns: Mapping[str, np.ndarray], source: str, trial_column: str = "trial"
 ) -> list[tuple[int | float, Trial]]:
@@ -129,7 +133,7 @@ def split_trials(
     if not np.isfinite(ids).all():
         row = int(np.flatnonzero(~np.isfinite(ids))[0])
         raise ValueError(
-            f"{source}: field {trial_column!r} is {ids[row]} at row {row}; "
+            f"{source}: field {trial_column!r} is {ids[row]} at row {row + 1} {_ROWS}; "
             "expected a trial number on every row"
         )
     labels, first = np.unique(ids, return_index=True)
@@ -140,10 +144,10 @@ def split_trials(
         at = np.flatnonzero(rows)
         if at[-1] - at[0] + 1 != len(at):
             end = int(at[np.flatnonzero(np.diff(at) > 1)[0]])
-            block = f"row {end}" if end == at[0] else f"rows {at[0]}–{end}"
+            block = f"row {end + 1}" if end == at[0] else f"rows {at[0] + 1}–{end + 1}"
             raise ValueError(
                 f"{source}: field {trial_column!r}: trial {name} is on {block} and again from "
-                f"row {at[at > end][0]}; expected each trial's rows together (two "
+                f"row {at[at > end][0] + 1} {_ROWS}; expected each trial's rows together (two "
                 "sessions pooled under the same trial numbers? number them apart, e.g. "
                 "20240501.001; rows out of order? sort them by trial and time)"
             )
