@@ -379,6 +379,17 @@ def test_shipped_checkpoint_loads_by_name_and_catches_fireflies():
     assert metrics["mean_return"] > floor["mean_return"] - 0.5
 
 
+def test_loading_a_policy_or_critic_leaves_the_callers_random_stream_alone():
+    """The networks built to take a checkpoint's weights drew their initial ones from torch's
+    global generator: every later unseeded draw changed with whether a policy was loaded."""
+    torch.manual_seed(0)
+    expected = torch.rand(3)
+    for load in (load_ensemble_policy, load_ensemble_critic):
+        torch.manual_seed(0)
+        load("firefly2d")
+        assert torch.equal(torch.rand(3), expected), load.__name__
+
+
 def test_theta_sensitivity_sees_which_parameters_a_policy_reads():
     # the pursuit controller reads the gains and the goal radius, never a noise or the effort
     # cost; the shipped ensemble's actions turn on every free parameter (measured on this grid:

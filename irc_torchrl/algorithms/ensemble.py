@@ -22,6 +22,7 @@ its evaluations score the world's return, and the success rate where the task de
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -1207,6 +1208,12 @@ def _load(
     return config, model, ckpt
 
 
+def _caller_rng_kept(device: torch.device) -> contextlib.AbstractContextManager:
+    """Networks built to be overwritten by a checkpoint draw their initial weights here without
+    advancing the caller's random stream (loading a policy moved every later unseeded draw)."""
+    return torch.random.fork_rng(devices=[device] if device.type == "cuda" else [])
+
+
 def load_ensemble_policy(
     source: str | Path = TASK, device: torch.device | str = "cpu", model: TaskModel | None = None
 ) -> tuple[TensorDictSequential, TaskModel, dict[str, Any]]:
@@ -1218,9 +1225,11 @@ def load_ensemble_policy(
     user's own the checkpoint was trained on, built on ``device`` (its name and θ space are
     checked); ``None``: the 2D firefly task.
     """
-    with torch.device(resolve_device(str(device))):
+    device = resolve_device(str(device))
+    with torch.device(device):
         config, model, ckpt = _load(source, ("best_actor",), model)
-        actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
+        with _caller_rng_kept(device):
+            actor = make_actor(model, config.ddpg.hidden, config.ddpg.activation)
     _restore(actor, ckpt, "best_actor")
     return actor.requires_grad_(False), model, ckpt
 
@@ -1235,7 +1244,9 @@ def load_ensemble_critic(
     """
     config, model, ckpt = _load(source, ("actor", "loss"), model)
     hidden, activation = config.ddpg.hidden, config.ddpg.activation
-    actor, critic = make_actor(model, hidden, activation), make_critic(model, hidden, activation)
+    with _caller_rng_kept(torch.device("cpu")):
+        actor = make_actor(model, hidden, activation)
+        critic = make_critic(model, hidden, activation)
     _restore(actor, ckpt, "actor")
     # DDPG's critic, or the first of TD3's twin copies (stacked along a leading dimension)
     twin = config.ddpg.loss == "td3"

@@ -232,7 +232,8 @@ def fit_theta(
     threads: the iterations' many small operations keep one process's threads mostly idle,
     so processes use the cores better (they are spawned: a script calling this needs the
     ``if __name__ == "__main__":`` guard). The numbers depend on ``workers`` (each shard draws
-    its own Fisher-scoring samples), not on the machine.
+    its own Fisher-scoring samples) and, where a path crosses a cusp of the likelihood, on
+    torch's thread count (its sums round differently), not otherwise on the machine.
     """
     if curvature not in CURVATURES:
         raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
