@@ -23,7 +23,7 @@ import torch
 
 import irc_torchrl
 from irc_torchrl.checks import first_line, shown
-from irc_torchrl.data.files import atomic_path
+from irc_torchrl.data.files import write_torch
 from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
@@ -86,9 +86,7 @@ def save_checkpoint(
         "config": dict(config),
         **state,
     }
-    with atomic_path(path, suffix=".pt") as tmp:
-        torch.save(payload, tmp)
-    return Path(path)
+    return write_torch(path, payload)
 
 
 def _check_save_arguments(

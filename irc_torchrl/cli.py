@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import signal
 import sys
@@ -578,6 +579,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: expected a folder, {out} is a file")
+    _check_writable(out)
     path = out / "summary.json"
     if not path.is_file():
         _check_stages(args, out)
@@ -602,6 +604,29 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"
+        )
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse an ``--out`` that cannot be made or written (a dangling link, a file on its
+    path, a read-only file system) before any work: found when writing, it cost the run."""
+    folder = out
+    while not folder.exists():
+        if folder.is_symlink():
+            raise ValueError(
+                f"--out: {folder} links to {os.readlink(folder)}, which does not exist; expected "
+                "a folder, or a path where one can be made"
+            )
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(
+            f"--out: {out} cannot be made, {folder} is a file; expected a folder, or a path "
+            "where one can be made"
+        )
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(
+            f"--out: {folder} cannot be written (a read-only file system, or no permission); "
+            "expected a writable folder"
         )
 
 
@@ -679,38 +704,55 @@ def main(argv: Sequence[str] | None = None) -> int:
     warnings.formatwarning = partial(_format_warning, args.command)
     # where SIGTERM would end the process as it stands (a host program's handler, an ignored
     # SIGTERM or a thread's call stays as it is)
-    handles_signals = (
-        threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
-    )
-    if handles_signals:
-        signal.signal(signal.SIGTERM, _terminated)
+    main_thread = threading.current_thread() is threading.main_thread()
+    handled = [  # where a signal would end the process as it stands (a host's handler stays)
+        (number, default)
+        for number, default in _DEFAULT_HANDLERS.items()
+        if main_thread and signal.getsignal(number) is default
+    ]
+    _RECEIVED.clear()
+    for number, _ in handled:
+        signal.signal(number, _stop)
     try:
         _check_arguments(args)
         return args.run(args)
-    except (KeyError, ValueError, TypeError, OSError, ImportError) as error:
+    except KeyboardInterrupt:  # Ctrl-C or kill: what was written before stays as it was
+        return _stopped(args)
+    except Exception as error:
+        if _RECEIVED:  # an interrupt a library's context manager turned into another error
+            return _stopped(args)
+        if not isinstance(error, (KeyError, ValueError, TypeError, OSError, ImportError)):
+            raise
         message = error.args[0] if isinstance(error, KeyError) and error.args else error
         print(f"irc {args.command}: error: {_unprefixed(args.command, message)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as stop:  # Ctrl-C or kill: what was written before stays as it was
-        left = _RESUME[args.command].format(out=getattr(args, "out", None))
-        how, status = ("terminated", 143) if isinstance(stop, _Terminated) else ("interrupted", 130)
-        print(f"irc {args.command}: {how}; {left}", file=sys.stderr)
-        return status
     finally:
         warnings.formatwarning = formatwarning
-        if handles_signals:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for number, default in handled:
+            signal.signal(number, default)
 
 
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM (``kill``, a scheduler's time limit) raised as an interrupt, so that the
-    same cleanup runs as on Ctrl-C: staging folders and temporaries removed, nothing half
-    written."""
+#: the signals irc turns into an interrupt, with the handlers it replaces only where they stand
+_DEFAULT_HANDLERS = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+#: the signals received during the command
+_RECEIVED: list[int] = []
 
 
-def _terminated(_signum: int, _frame: object) -> None:
-    raise _Terminated
+def _stop(signum: int, _frame: object) -> None:
+    """Ctrl-C, or SIGTERM (``kill``, a scheduler's time limit), raised as an interrupt so that
+    the same cleanup runs on both: staging folders and temporaries removed, nothing half
+    written. It is recorded too: TorchRL's context managers turn it into a RuntimeError."""
+    _RECEIVED.append(signum)
+    raise KeyboardInterrupt
+
+
+def _stopped(args: argparse.Namespace) -> int:
+    """The one line of a command interrupted (exit 130) or terminated (143)."""
+    left = _RESUME[args.command].format(out=getattr(args, "out", None))
+    terminated = signal.SIGTERM in _RECEIVED
+    how, status = ("terminated", 143) if terminated else ("interrupted", 130)
+    print(f"irc {args.command}: {how}; {left}", file=sys.stderr)
+    return status
 
 
 #: what an interrupted fit (irc fit, irc recover) leaves, and how to go on
@@ -723,8 +765,8 @@ _RESUME = {
     "fit": _STAGED,
     "recover": _STAGED,
     "train": "--out keeps the last checkpoint.pt written there (every checkpoint_every "
-    "updates; an earlier run's before the first): rerun with --resume {out}/checkpoint.pt to go "
-    "on from it",
+    "updates; an earlier run's before the first): rerun with --resume {out}/checkpoint.pt "
+    "--out {out} to go on from it",
     "simulate": "--out keeps its earlier recordings and summary",
     "demo": "--out keeps its earlier files",
     "report": "each figure is the earlier one or the redrawn one, whole",

@@ -35,7 +35,7 @@ import irc_torchrl
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.checkpoint import read_weights
 from irc_torchrl.config import config_to_dict
-from irc_torchrl.data.files import atomic_path, write_text
+from irc_torchrl.data.files import write_text, write_torch
 from irc_torchrl.envs.model import TaskModel
 
 __all__ = ["AFTER_FITS", "Stages", "fit_settings", "format_resumed", "stage_key", "staged_by"]
@@ -308,8 +308,7 @@ class Stages:
         seconds = time.perf_counter() - begin
         if self.folder is not None:
             stage = {"key": self.key, "seconds": seconds, "result": state(result)}
-            with atomic_path(self.folder / f"{name}.pt") as tmp:
-                torch.save(stage, tmp)
+            write_torch(self.folder / f"{name}.pt", stage)
             if self.command and staged_by(self.folder) != self.command:
                 write_text(self.folder / COMMAND_FILE, self.command + "\n")
         return result, seconds

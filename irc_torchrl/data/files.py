@@ -3,6 +3,7 @@ folder reads of the earlier run there to remove what it would leave stale."""
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -13,6 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+import torch
 
 __all__ = [
     "atomic_dir",
@@ -23,6 +25,7 @@ __all__ = [
     "write_json",
     "write_npz",
     "write_text",
+    "write_torch",
 ]
 
 
@@ -115,6 +118,17 @@ def write_npz(path: str | Path, arrays: Mapping[str, np.ndarray]) -> Path:
     """Write ``arrays`` into an ``.npz`` archive (plain arrays: it reads back without pickle)."""
     with atomic_path(path, suffix=".tmp.npz") as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
+    return Path(path)
+
+
+def write_torch(path: str | Path, data: object) -> Path:
+    """Write ``data`` by ``torch.save`` atomically. It is serialised in memory first: torch's
+    own writer reports a full disk as a RuntimeError of its C++ stream, a file write as the
+    ``OSError`` (no space left on device) that it is."""
+    buffer = io.BytesIO()
+    torch.save(data, buffer)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buffer.getbuffer())
     return Path(path)
 
 
