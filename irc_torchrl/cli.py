@@ -764,9 +764,9 @@ _STAGED = (
 _RESUME = {
     "fit": _STAGED,
     "recover": _STAGED,
-    "train": "--out keeps the last checkpoint.pt written there (every checkpoint_every "
-    "updates; an earlier run's before the first): rerun with --resume {out}/checkpoint.pt "
-    "--out {out} to go on from it",
+    "train": "--out keeps the last checkpoint.pt written there, with its config.yaml (every "
+    "checkpoint_every updates; an earlier run's before the first, beside this run's logs): "
+    "rerun with --resume {out}/checkpoint.pt --out {out} to go on from it",
     "simulate": "--out keeps its earlier recordings and summary",
     "demo": "--out keeps its earlier files",
     "report": "each figure is the earlier one or the redrawn one, whole",

@@ -364,6 +364,40 @@ def test_a_failing_save_keeps_the_previous_checkpoint(tmp_path, monkeypatch):
     assert load_checkpoint(path)["n"] == 1
 
 
+def test_a_fresh_run_into_an_earlier_runs_folder_leaves_no_mixture(tmp_path, monkeypatch):
+    """A rerun into the same --out appended its log rows to the earlier run's (34 lines became
+    68), and one interrupted after its first checkpoint left the earlier run's summary beside
+    its own checkpoint and config. Logs start afresh; config.yaml goes with each checkpoint and
+    the earlier summary with the checkpoint it described."""
+    out = tmp_path / "run"
+    csv = [o for o in TINY if not o.startswith("logger=")] + ["logger=csv"]
+    train_ensemble(load_firefly2d_config(overrides=csv), out=out, progress=False)
+
+    def rows() -> dict[str, int]:
+        return {p.name: len(p.read_text().splitlines()) for p in out.glob("logs/*/scalars/*")}
+
+    first = rows()
+    assert first and (out / "summary.json").is_file()
+    train_ensemble(load_firefly2d_config(overrides=[*csv, "seed=5"]), out=out, progress=False)
+    assert rows() == first
+    calls = []
+
+    def interrupted_after_the_first(*args, **kwargs):
+        calls.append(1)
+        if len(calls) > 1:
+            raise KeyboardInterrupt
+        return save_checkpoint(*args, **kwargs)
+
+    monkeypatch.setattr(
+        "irc_torchrl.algorithms.ensemble.save_checkpoint", interrupted_after_the_first
+    )
+    with pytest.raises(KeyboardInterrupt):
+        train_ensemble(load_firefly2d_config(overrides=[*csv, "seed=6"]), out=out, progress=False)
+    assert yaml.safe_load((out / "config.yaml").read_text())["seed"] == 6
+    assert load_checkpoint(out / "checkpoint.pt")["config"]["seed"] == 6
+    assert not (out / "summary.json").exists()
+
+
 def test_resume_restores_state_and_is_deterministic(tmp_path, trained):
     """Resuming is deterministic and restores everything saved.
 

@@ -26,6 +26,7 @@ import contextlib
 import copy
 import dataclasses
 import math
+import shutil
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -799,13 +800,13 @@ def _train(
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(d.buffer_size, device=device), batch_size=d.batch_size
     )
+    if out is not None and resume is None:  # an earlier run's rows would run on into this one's
+        shutil.rmtree(out / "logs", ignore_errors=True)
     logger = _Logger(config.logger, out)
     bar = _progress_bar(progress, d.total_frames, frames - seeded)
     cpu0 = time.process_time() - (history[-1]["cpu_s"] if history else 0.0)
     eval_cpu = history[-1]["cpu_s"] - history[-1]["train_cpu_s"] if history else 0.0
     checkpoint_path = out / "checkpoint.pt" if out is not None else None
-    if out is not None:
-        write_text(out / "config.yaml", yaml.safe_dump(dataclasses.asdict(config), sort_keys=False))
 
     def state() -> dict[str, Any]:
         return {
@@ -822,6 +823,8 @@ def _train(
         }
 
     def checkpoint() -> None:
+        """The checkpoint, with the config it was trained by; an earlier run's summary goes
+        with the checkpoint it described (until this run's own replaces it)."""
         if checkpoint_path is not None:
             save_checkpoint(
                 checkpoint_path,
@@ -830,6 +833,10 @@ def _train(
                 config=dataclasses.asdict(config),
                 state=state(),
             )
+            settings = yaml.safe_dump(dataclasses.asdict(config), sort_keys=False)
+            write_text(checkpoint_path.with_name("config.yaml"), settings)
+            if resume is None:
+                checkpoint_path.with_name("summary.json").unlink(missing_ok=True)
 
     def evaluate() -> None:
         nonlocal best, best_actor, eval_cpu
