@@ -710,7 +710,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for number, default in _DEFAULT_HANDLERS.items()
         if main_thread and signal.getsignal(number) is default
     ]
-    _RECEIVED.clear()
+    if handled:  # a command in another thread keeps its hands off the record
+        _RECEIVED.clear()
     for number, _ in handled:
         signal.signal(number, _stop)
     try:
@@ -719,7 +720,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # Ctrl-C or kill: what was written before stays as it was
         return _stopped(args)
     except Exception as error:
-        if _RECEIVED:  # an interrupt a library's context manager turned into another error
+        if handled and _RECEIVED:  # an interrupt a library turned into another error
             return _stopped(args)
         if not isinstance(error, (KeyError, ValueError, TypeError, OSError, ImportError)):
             raise

@@ -378,8 +378,9 @@ def test_a_fresh_run_into_an_earlier_runs_folder_leaves_no_mixture(tmp_path, mon
 
     first = rows()
     assert first and (out / "summary.json").is_file()
+    (out / "logs" / "mine.txt").write_text("a file of the user's own, beside the logger's")
     train_ensemble(load_firefly2d_config(overrides=[*csv, "seed=5"]), out=out, progress=False)
-    assert rows() == first
+    assert rows() == first and (out / "logs" / "mine.txt").is_file()
     calls = []
 
     def interrupted_after_the_first(*args, **kwargs):

@@ -160,13 +160,14 @@ def test_trials_of_one_step_round_trip(tmp_path, model1d, suffix):
         read_trials(write_trials(trials, tmp_path / f"t{suffix}", model1d), model1d), trials
     )
     # its samples read as half a model step apart, each trial resamples to every other
-    # sample and its last one (the stop), and a one-sample trial stays one step
+    # sample, and a one-sample trial stays one step
     columns = trials_to_columns(trials, model1d)
     columns["time"] = columns["time"] / 2
     _write_raw(columns, tmp_path / "half.csv")
     with pytest.warns(UserWarning, match="resampled every trial"):
         half = read_trials(tmp_path / "half.csv", model1d)
-    assert torch.equal(half["mask"].sum(-1), trials["mask"].sum(-1) // 2 + 1)
+    assert torch.equal(half["mask"].sum(-1), (trials["mask"].sum(-1) - 1) // 2 + 1)
+    assert recorded_stops(half, model1d).any(-1).all()  # each trial's last action, its stop
 
 
 def test_missing_theta_columns_take_the_space_default(tmp_path, model2d, trials2d):
@@ -343,9 +344,10 @@ def test_an_agent_recorded_acting_twice_a_step_reads_with_the_action_at_each_ste
     assert (columns["time"][::2] - 3.3 > np.arange(8)).any()  # the hair past
     with pytest.warns(UserWarning, match="resampled"):
         back = read_trials(_write_recording(columns, tmp_path / "twice.csv"), model1d)
-    # the last sample, a stop 7.5 s in, held by the step after it (8 s)
-    assert back["action"].tolist() == [[2] * 8 + [1]]
-    np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.arange(9), atol=1e-6)
+    # but the last step's, which takes the trial's last recorded action (here the stop 7.5 s
+    # in: a trial ends at its stop)
+    assert back["action"].tolist() == [[2] * 7 + [1]]
+    np.testing.assert_allclose(back["state"][0, :, 0].numpy(), 0.5 * np.arange(8), atol=1e-6)
 
 
 def test_a_recording_five_percent_off_the_model_step_is_resampled_linearly(tmp_path, model2d):
@@ -366,15 +368,15 @@ def test_a_recording_five_percent_off_the_model_step_is_resampled_linearly(tmp_p
 @pytest.mark.parametrize("late", [0.0, 0.05])
 def test_a_trial_resampled_off_its_grid_keeps_its_last_sample_the_stop(tmp_path, model2d, late):
     """A 60 Hz rig whose trial ends (at the stop) between two steps of the 0.1 s grid lost
-    every sample after the grid's last step before it: the stop, and with it what the goal
-    radius is fitted from (a converged, confident, wrong θ̂). The grid now runs to the step
-    at or after the last sample, which holds it."""
+    every sample after the grid's last step before it: the stop. The last step now takes the
+    trial's last recorded action; no step is added (a rig holding each action for its step
+    reads as before)."""
     columns = _hand_made([0, 1], steps=80, dt=1 / 60, start=late)
     columns["a_v"][79::80] = 0.0  # each trial stops at its last sample, 79/60 s in
     _write_raw(columns, tmp_path / "rig.csv")
     with pytest.warns(UserWarning, match="resampled every trial"):
         back = read_trials(tmp_path / "rig.csv", model2d)
-    assert back.shape == (2, 15)  # 1.3167 s: 14 steps of 0.1 s, and the one holding the stop
+    assert back.shape == (2, 14)  # 1.3167 s: the steps at 0, 0.1, ..., 1.3 s
     assert recorded_stops(back, model2d)[:, -1].all()
     assert back["action"][:, -1, 0].tolist() == [0.0, 0.0]
     torch.testing.assert_close(back["action"][:, -2, 0], torch.full((2,), 0.5 / 1.2))
@@ -382,7 +384,8 @@ def test_a_trial_resampled_off_its_grid_keeps_its_last_sample_the_stop(tmp_path,
 
 def test_a_discrete_stop_between_two_model_steps_is_kept(tmp_path, model1d):
     """Sampled every half step, a trial of 'left' then a stop half a step later read as one
-    step of 'left': the stop was dropped, and nothing was said."""
+    step of 'left': the stop was dropped, and nothing was said. A trial ends at its stop,
+    which its last step takes."""
     columns = {
         "trial": np.array([0.0, 0.0, 1.0, 1.0, 1.0]),
         "time": np.array([0.0, 0.5, 10.0, 10.5, 11.0]),
@@ -392,8 +395,8 @@ def test_a_discrete_stop_between_two_model_steps_is_kept(tmp_path, model1d):
     }
     with pytest.warns(UserWarning, match="resampled every trial"):
         back = read_trials(_write_recording(columns, tmp_path / "half.csv"), model1d)
-    assert back["mask"].sum(-1).tolist() == [2, 2]
-    assert recorded_stops(back, model1d)[:, 1].all()
+    assert back["mask"].sum(-1).tolist() == [1, 2]
+    assert back["action"][0, 0] == 1 and back["action"][1].tolist() == [2, 1]
 
 
 def test_the_same_recording_in_m_cm_and_mm_reads_alike(tmp_path, model2d):

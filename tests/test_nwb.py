@@ -26,7 +26,8 @@ def _numbered(model: Firefly2DModel, numbers: list[float]):
 def test_non_integer_trial_numbers_are_refused_before_writing(tmp_path):
     """0.1, 0.2 and 0.3 would all be written as trial 0: a file that cannot be read back."""
     model = Firefly2DModel()
-    with pytest.raises(ValueError, match="NWB: field 'trial' is 0.1 at row 0; expected integer"):
+    message = r"NWB: field 'trial' is 0.1 at row 1 \(rows counted from 1\); expected integer"
+    with pytest.raises(ValueError, match=message):
         write_trials(_numbered(model, [0.1, 0.2, 0.3]), tmp_path / "t.nwb", model)
     assert list(tmp_path.iterdir()) == []
     write_trials(_numbered(model, [3.0, 5.0, 7.0]), tmp_path / "t.nwb", model)

@@ -647,6 +647,9 @@ class TrainResult:
 class _Logger:
     """TorchRL's CSV (or TensorBoard) logger under ``out``; does nothing without ``out``."""
 
+    #: the experiment's name: TorchRL's loggers write under ``out/logs/NAME``
+    NAME = "train"
+
     def __init__(self, kind: str, out: Path | None) -> None:
         self.logger = None
         if out is None or kind == "none":
@@ -655,13 +658,13 @@ class _Logger:
             try:
                 from torchrl.record.loggers import TensorboardLogger
 
-                self.logger = TensorboardLogger("train", log_dir=str(out / "logs"))
+                self.logger = TensorboardLogger(self.NAME, log_dir=str(out / "logs"))
                 return
             except ImportError:
                 pass  # TensorBoard absent: fall back to CSV as documented
         from torchrl.record.loggers import CSVLogger
 
-        self.logger = CSVLogger("train", log_dir=str(out / "logs"))
+        self.logger = CSVLogger(self.NAME, log_dir=str(out / "logs"))
 
     def log(self, values: Mapping[str, float], step: int) -> None:
         if self.logger is not None:
@@ -801,12 +804,15 @@ def _train(
         storage=LazyTensorStorage(d.buffer_size, device=device), batch_size=d.batch_size
     )
     if out is not None and resume is None:  # an earlier run's rows would run on into this one's
-        shutil.rmtree(out / "logs", ignore_errors=True)
+        shutil.rmtree(out / "logs" / _Logger.NAME, ignore_errors=True)
     logger = _Logger(config.logger, out)
     bar = _progress_bar(progress, d.total_frames, frames - seeded)
     cpu0 = time.process_time() - (history[-1]["cpu_s"] if history else 0.0)
     eval_cpu = history[-1]["cpu_s"] - history[-1]["train_cpu_s"] if history else 0.0
     checkpoint_path = out / "checkpoint.pt" if out is not None else None
+    settings = yaml.safe_dump(dataclasses.asdict(config), sort_keys=False)
+    if checkpoint_path is not None and (resume is not None or not checkpoint_path.exists()):
+        write_text(out / "config.yaml", settings)  # else with this run's first checkpoint
 
     def state() -> dict[str, Any]:
         return {
@@ -833,7 +839,6 @@ def _train(
                 config=dataclasses.asdict(config),
                 state=state(),
             )
-            settings = yaml.safe_dump(dataclasses.asdict(config), sort_keys=False)
             write_text(checkpoint_path.with_name("config.yaml"), settings)
             if resume is None:
                 checkpoint_path.with_name("summary.json").unlink(missing_ok=True)

@@ -434,7 +434,8 @@ def _on_model_grid(
     if resample:
         warnings.warn(
             f"{source}: resampled every trial from a median time step of {step:.6g} s "
-            f"to the model's {model.dt} s (linear; discrete actions the previous sample)",
+            f"to the model's {model.dt} s (linear; discrete actions the previous sample; each "
+            "trial's last step its last recorded action)",
             stacklevel=3,
         )
     discrete = {trial_column}
@@ -455,6 +456,7 @@ def _on_model_grid(
                 "one model step (fill or cut the gap)"
             )
         if resample:
+            recorded_trial = trial
             grid = model.dt * np.arange(_grid_steps(time[-1], model.dt))
             previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
             for i in gaps:  # the longest gap holding model steps no sample was near
@@ -465,6 +467,8 @@ def _on_model_grid(
                 name: values[previous] if name in discrete else np.interp(grid, time, values)
                 for name, values in trial.items()
             }
+            for name in model.action_names:  # a stop between the last two steps: the last's
+                trial[name][-1] = recorded_trial[name][-1]
             time = grid
         out.append((label, {**trial, time_column: time}))
     seconds, label, start, inside = longest
@@ -480,10 +484,8 @@ def _on_model_grid(
 
 
 def _grid_steps(duration: float, dt: float) -> int:
-    """How many steps of ``dt`` a trial of ``duration`` seconds takes on the model's grid: up
-    to its last sample or just past it, which then holds that sample (the stop, which a grid
-    ending short of it would drop)."""
-    return int(np.ceil(duration / dt - 1e-6)) + 1
+    """How many steps of ``dt`` a trial of ``duration`` seconds takes on the model's grid."""
+    return int(np.floor(duration / dt + 1e-6)) + 1
 
 
 def _refuse_long(

@@ -68,8 +68,8 @@ def write_nwb(
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
         raise ValueError(
-            f"NWB: field {trial_column!r} is {ids[row]} at row {row}; expected integer trial "
-            "numbers (the ids of the NWB trials table)"
+            f"NWB: field {trial_column!r} is {ids[row]} at row {row + 1} (rows counted from 1); "
+            "expected integer trial numbers (the ids of the NWB trials table)"
         )
     labels = list(dict.fromkeys(trials.tolist()))
     time = columns[time_column].astype(np.float64)
