@@ -702,10 +702,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.out = "runs/demo2d" if args.task == "firefly2d" else "runs/demo"
     formatwarning = warnings.formatwarning  # catch_warnings does not restore it
     warnings.formatwarning = partial(_format_warning, args.command)
-    # where SIGTERM would end the process as it stands (a host program's handler, an ignored
-    # SIGTERM or a thread's call stays as it is)
+    # where a signal would end the process as it stands (a host program's handler, an ignored
+    # signal or a thread's call stays as it is)
     main_thread = threading.current_thread() is threading.main_thread()
-    handled = [  # where a signal would end the process as it stands (a host's handler stays)
+    handled = [
         (number, default)
         for number, default in _DEFAULT_HANDLERS.items()
         if main_thread and signal.getsignal(number) is default
