@@ -839,9 +839,9 @@ def _train(
                 config=dataclasses.asdict(config),
                 state=state(),
             )
-            write_text(checkpoint_path.with_name("config.yaml"), settings)
+            write_text(out / "config.yaml", settings)
             if resume is None:
-                checkpoint_path.with_name("summary.json").unlink(missing_ok=True)
+                (out / "summary.json").unlink(missing_ok=True)
 
     def evaluate() -> None:
         nonlocal best, best_actor, eval_cpu

@@ -193,8 +193,9 @@ Writer = Callable[[Columns, Path, TaskModel], None]
 
 def _reader(path: Path) -> Reader:
     if path.is_dir():
-        inside = sorted(f for f in path.iterdir() if f.suffix in SUFFIXES)
-        if inside and not (path / "meta.json").is_file():  # a session's folder of recordings
+        memmap = (path / "meta.json").is_file()
+        inside = [] if memmap else sorted(f for f in path.iterdir() if f.suffix in SUFFIXES)
+        if inside:  # a session's folder of recordings
             names = ", ".join(f.name for f in inside[:3]) + (", ..." if len(inside) > 3 else "")
             raise ValueError(
                 f"{path}: a folder of recordings ({names}), not a TensorDict memmap folder; "
@@ -456,20 +457,19 @@ def _on_model_grid(
                 "one model step (fill or cut the gap)"
             )
         if resample:
-            recorded_trial = trial
             grid = model.dt * np.arange(_grid_steps(time[-1], model.dt))
             previous = np.searchsorted(time, grid + 1e-9 * model.dt, side="right") - 1
             for i in gaps:  # the longest gap holding model steps no sample was near
                 inside = int(((grid > time[i] + step) & (grid < time[i + 1] - step)).sum())
                 if inside and time[i + 1] - time[i] > longest[0]:
                     longest = (float(time[i + 1] - time[i]), label, float(recorded[i]), inside)
-            trial = {
+            resampled = {
                 name: values[previous] if name in discrete else np.interp(grid, time, values)
                 for name, values in trial.items()
             }
             for name in model.action_names:  # a stop between the last two steps: the last's
-                trial[name][-1] = recorded_trial[name][-1]
-            time = grid
+                resampled[name][-1] = trial[name][-1]
+            trial, time = resampled, grid
         out.append((label, {**trial, time_column: time}))
     seconds, label, start, inside = longest
     if inside:
