@@ -11,6 +11,7 @@ import sys
 import threading
 import warnings
 from collections.abc import Sequence
+from contextlib import AbstractContextManager, nullcontext
 from functools import partial
 from pathlib import Path
 from types import ModuleType
@@ -351,9 +352,10 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     simulate.add_argument("--out", required=True, help="output folder")
     simulate.add_argument(
         "--format",
-        choices=["csv", "npz", "nwb", "memmap"],
+        choices=["csv", "csv.gz", "npz", "nwb", "memmap"],
         default="csv",
-        help="recording format (default csv; nwb needs pynwb; memmap: a TensorDict folder)",
+        help="recording format (default csv; csv.gz: gzip-compressed; nwb needs pynwb; memmap: "
+        "a TensorDict folder)",
     )
     _add_common(
         simulate,
@@ -630,6 +632,18 @@ def _check_writable(out: Path) -> None:
         )
 
 
+def _held(args: argparse.Namespace) -> AbstractContextManager:
+    """The command's folder (``--out``, or the run folder ``irc report`` draws into) held for
+    the run: a concurrent irc run into it is refused."""
+    from irc_torchrl.data.files import held
+
+    if getattr(args, "out", None) is not None:
+        return held(args.out)
+    if getattr(args, "folder", None) is not None and Path(args.folder).is_dir():
+        return held(args.folder, field="DIR")
+    return nullcontext()
+
+
 def _writes(args: argparse.Namespace) -> str:
     """The command whose summary (and stages) this one writes: `irc demo --task firefly2d` is
     a short `irc recover` and writes its summary."""
@@ -716,7 +730,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(number, _stop)
     try:
         _check_arguments(args)
-        return args.run(args)
+        with _held(args):
+            return args.run(args)
     except KeyboardInterrupt:  # Ctrl-C or kill: what was written before stays as it was
         return _stopped(args)
     except Exception as error:
@@ -779,9 +794,9 @@ _WRITERS = set(_RESUME) - {"report"}
 def _recording(item: str) -> bool:
     """Whether a command-line item names a recording: a path that exists, or one with a
     recording's suffix (read_trials then says it is missing)."""
-    from irc_torchrl.data.io import SUFFIXES
+    from irc_torchrl.data.io import SUFFIXES, recording_suffix
 
-    return Path(item).exists() or Path(item).suffix in SUFFIXES
+    return Path(item).exists() or recording_suffix(item) in SUFFIXES
 
 
 def _format_warning(command: str, message: Warning | str, *args: Any, **kwargs: Any) -> str:

@@ -9,6 +9,7 @@ obs_sigma_v (0.64 against 0.6) is fitted but not asserted.
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
 import re
@@ -29,6 +30,7 @@ from irc_torchrl.algorithms.recordings import format_fit
 from irc_torchrl.algorithms.stages import Stages
 from irc_torchrl.cli import _check_arguments, build_parser, main
 from irc_torchrl.config import RecordingFitConfig
+from irc_torchrl.data.files import held
 from irc_torchrl.data.io import read_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel, firefly2d_theta_space
@@ -524,7 +526,7 @@ def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeyp
     assert capsys.readouterr().err.splitlines() == [
         "irc simulate: terminated; --out keeps its earlier recordings and summary"
     ]
-    assert list(out.iterdir()) == []
+    assert not out.exists()  # nothing left, not even the folder it made
     assert signal.getsignal(signal.SIGTERM) is handler
 
 
@@ -549,7 +551,7 @@ def test_an_interrupt_a_library_turns_into_another_error_still_reads_as_an_inter
     assert capsys.readouterr().err.splitlines() == [
         "irc simulate: interrupted; --out keeps its earlier recordings and summary"
     ]
-    assert list(out.iterdir()) == []
+    assert not out.exists()
     assert signal.getsignal(signal.SIGINT) is handler
 
 
@@ -568,6 +570,83 @@ def test_an_out_that_cannot_be_made_is_refused_before_any_work(tmp_path, capsys)
         err = capsys.readouterr().err
         assert re.match(rf"^irc simulate: error: --out: .*{message}", err), err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "gone"]
+
+
+def test_a_second_run_into_a_folder_in_use_is_refused_before_any_work(tmp_path, capsys):
+    """Two runs into one --out wrote their files side by side, the last summary winning over a
+    mixture of both runs' recordings; the second is refused now, the first's files untouched,
+    and the folder is free again once the first ends."""
+    out = tmp_path / "sim"
+    simulate = ["simulate", "--out", str(out), "--quiet", "n_agents=1", "n_trials=1"]
+    assert main(simulate) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with held(out):  # another run's hold (a lock of another open file, as another process's)
+        assert main([*simulate, "--seed", "7"]) == 2
+        err = capsys.readouterr().err
+        assert re.fullmatch(
+            r"irc simulate: error: --out: .*sim is in use by another irc run \(its files would "
+            r"mix with this run's\); wait for it to end, or choose another folder\n",
+            err,
+        ), err
+        assert main(["report", str(out)]) == 2
+        assert "DIR: " in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert main([*simulate, "--seed", "7"]) == 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} != before
+
+
+def test_a_killed_runs_temporaries_are_removed_by_the_next_run_into_its_folder(tmp_path):
+    """A run killed before its cleanup (kill -9) left its staging folder, a half-written file
+    and irc report's scratch in --out for good; the next run holding the folder removes them,
+    and nothing else."""
+    out = tmp_path / "sim"
+    (out / "stages").mkdir(parents=True)
+    temporaries = [
+        ".staged.q0a1b2c3.tmp",
+        ".report.ab12cd_4",
+        ".agent0.x1y2z3w4.old",
+        "stages/.draw0.pt.k2j4_a9x.tmp",
+    ]
+    for name in temporaries:
+        (out / name).mkdir()
+        (out / name / "half").write_text("")
+    for name in [".summary.json.abcdefgh.tmp", ".agent0.csv.abcdefgh.tmp.csv"]:
+        (out / name).write_text("")
+        temporaries.append(name)
+    kept = [".notes.tmp", "notes.txt", ".x.abcdefgh.tmp.bak", "stages/.plan.abcdefgh"]
+    for name in kept:
+        (out / name).write_text("mine")
+    simulate = ["simulate", "--out", str(out), "--quiet", "n_agents=1", "n_trials=1"]
+    assert main(simulate) == 0
+    assert not [name for name in temporaries if (out / name).exists()]
+    assert all((out / name).read_text() == "mine" for name in kept)
+
+
+def test_a_refused_run_leaves_no_out_folder_it_made(tmp_path, capsys):
+    """The hold makes --out before the run; a run refused inside (a setting out of range)
+    leaves no empty folder behind."""
+    out = tmp_path / "a" / "sim"
+    assert main(["simulate", "--out", str(out), "--quiet", "n_agents=0"]) == 2
+    assert "n_agents" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_a_memmap_recording_larger_than_the_free_space_is_refused_before_writing(
+    tmp_path, monkeypatch, capsys
+):
+    """A memmap written past a full disk ended irc simulate with SIGBUS (exit 135), a staging
+    folder left behind; the space is checked before each recording is written."""
+    out = tmp_path / "sim"
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda _: usage._replace(free=10_000))
+    simulate = ["simulate", "--out", str(out), "--quiet", "--format", "memmap", "n_trials=20"]
+    assert main(simulate) == 2
+    assert re.fullmatch(
+        r"irc simulate: error: \[Errno 28\] No space left on device: the memmap recording "
+        r"agent0 needs 0\.\d+ MB, its file system has 0\.01 MB free\n",
+        capsys.readouterr().err,
+    )
+    assert not out.exists()
 
 
 def test_a_rerun_of_simulate_keeps_no_earlier_memmap_agent_nor_its_summary(tmp_path, monkeypatch):
@@ -747,17 +826,18 @@ def test_simulation_reports_each_time_step_without_changing_the_trials():
 
 def test_a_fit_of_recordings_sharing_a_name_keeps_each_apart(simulated, tmp_path):
     """Two files named alike (one simulated, one not) and a third whose name is the numbered
-    form of theirs: unique labels, θ̂ scored against the truth of the one recording whose truth
-    is known, every recording's own trial numbers in beliefs.npz, a particle check of the
-    reported fit alone."""
+    form of theirs (gzip-compressed): unique labels, θ̂ scored against the truth of the one
+    recording whose truth is known, every recording's own trial numbers in beliefs.npz, a
+    particle check of the reported fit alone."""
     (tmp_path / "lab").mkdir()
     lines = (simulated / "agent0.csv").read_text().splitlines()
     rows = [row.split(",", 1) for row in lines[1:]]  # trial numbers 100, 107, ...
     renumbered = [f"{100 + 7 * int(trial)},{rest}" for trial, rest in rows]
     (tmp_path / "lab" / "agent0.csv").write_text("\n".join([lines[0], *renumbered]) + "\n")
-    shutil.copy(simulated / "agent0.csv", tmp_path / "lab" / "agent0_1.csv")
+    packed = gzip.compress((simulated / "agent0.csv").read_bytes())  # labelled without .csv.gz
+    (tmp_path / "lab" / "agent0_1.csv.gz").write_bytes(packed)
     files = [str(simulated / "agent0.csv"), str(tmp_path / "lab" / "agent0.csv")]
-    files.append(str(tmp_path / "lab" / "agent0_1.csv"))
+    files.append(str(tmp_path / "lab" / "agent0_1.csv.gz"))
     out = tmp_path / "fit"
     settings = ["--free", "g_v", "--method", "marginal", "max_iter=2", "particles=20",
                 "n_screen=2", "n_starts=1"]  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import gzip
 import math
 import os
 import sys
@@ -107,7 +108,7 @@ def _hand_made(labels, steps=12, *, dt=0.1, start=0.0, jitter=0.0, heading=0.3, 
 
 
 # --- round trips -----------------------------------------------------------------------------
-@pytest.mark.parametrize("suffix", [".npz", ".csv", "", ".nwb"])
+@pytest.mark.parametrize("suffix", [".npz", ".csv", ".csv.gz", "", ".nwb"])
 def test_round_trip_preserves_values_mask_and_padding(tmp_path, model2d, trials2d, suffix):
     if suffix == ".nwb":
         pytest.importorskip("pynwb")
@@ -120,7 +121,7 @@ def test_round_trip_preserves_values_mask_and_padding(tmp_path, model2d, trials2
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
 
 
-@pytest.mark.parametrize("suffix", [".npz", ".csv", "", ".nwb"])
+@pytest.mark.parametrize("suffix", [".npz", ".csv", ".csv.gz", "", ".nwb"])
 def test_a_round_trip_is_bit_for_bit_and_pads_with_each_trials_last_step(
     tmp_path, model2d, trials2d, suffix
 ):
@@ -807,6 +808,30 @@ def test_a_folder_that_is_not_a_memmap(tmp_path, model2d):
     message = r"folder: a folder of recordings \(a.csv, b.csv\), not a .* give the files \(e.g. "
     with pytest.raises(ValueError, match=message + r".*folder/\*\.csv\)$"):
         read_trials(tmp_path / "folder", model2d)
+
+
+def test_a_gzipped_csv_reads_as_its_csv_and_a_damaged_one_is_refused(tmp_path, model2d, trials2d):
+    """A rig's compressed export (session.csv.gz) was refused as the unknown format '.gz'; it
+    reads as the CSV inside, a folder of them is named as recordings, and gzip's own damage
+    (a truncated download, a plain file so named) is one line naming the file."""
+    plain = write_trials(trials2d, tmp_path / "a.csv", model2d)
+    packed = write_trials(trials2d, tmp_path / "a.csv.gz", model2d)
+    assert gzip.decompress(packed.read_bytes()) == plain.read_bytes()
+    assert write_trials(trials2d, tmp_path / "b.csv.gz", model2d).read_bytes() == (
+        packed.read_bytes()  # no time stamp in the header: the same trials, the same bytes
+    )
+    _assert_same(read_trials(packed, model2d), read_trials(plain, model2d))
+    (tmp_path / "truncated.csv.gz").write_bytes(packed.read_bytes()[:200])
+    (tmp_path / "plain.csv.gz").write_bytes(plain.read_bytes())
+    for name in ("truncated.csv.gz", "plain.csv.gz"):
+        with pytest.raises(ValueError, match=rf"^\S*{name}: a damaged gzip file \(.*\); write"):
+            read_trials(tmp_path / name, model2d)
+    (tmp_path / "session").mkdir()
+    packed.rename(tmp_path / "session" / "a.csv.gz")
+    with pytest.raises(
+        ValueError, match=r"a folder of recordings \(a.csv.gz\).*session/\*\.csv\.gz\)$"
+    ):
+        read_trials(tmp_path / "session", model2d)
 
 
 def test_a_missing_file(tmp_path, model2d):

@@ -55,7 +55,7 @@ from irc_torchrl.data.files import (
     write_json,
     write_npz,
 )
-from irc_torchrl.data.io import nwb_module, read_trials, write_trials
+from irc_torchrl.data.io import nwb_module, read_trials, recording_suffix, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.data.units import UNITS
 from irc_torchrl.envs.model import TaskModel, continuous_actions
@@ -76,7 +76,7 @@ __all__ = [
 ]
 
 #: file suffix per ``--format`` (memmap: a TensorDict folder, no suffix)
-FORMATS = {"csv": ".csv", "npz": ".npz", "nwb": ".nwb", "memmap": ""}
+FORMATS = {"csv": ".csv", "csv.gz": ".csv.gz", "npz": ".npz", "nwb": ".nwb", "memmap": ""}
 #: what ``--method`` accepts: one estimator, or both (marginal reported, map kept beside it)
 FIT_METHODS = (*METHODS, "both")
 #: the correlation of two estimates from which the table names them as traded off by the data
@@ -289,9 +289,9 @@ def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor |
 
 
 def _labels(paths: Sequence[Path]) -> list[str]:
-    """A short unique name per recording (its stem, numbered where stems repeat, and marked
-    where a number makes another file's stem)."""
-    stems = [p.stem for p in paths]
+    """A short unique name per recording (its name without its format's suffix, numbered
+    where those repeat, and marked where a number makes another file's)."""
+    stems = [p.name.removesuffix(recording_suffix(p)) for p in paths]
     labels: list[str] = []
     for i, stem in enumerate(stems):
         label = stem if stems.count(stem) == 1 else f"{stem}_{i}"

@@ -3,11 +3,14 @@ folder reads of the earlier run there to remove what it would leave stale."""
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import math
 import os
+import re
 import shutil
+import sys
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
@@ -19,7 +22,9 @@ import torch
 __all__ = [
     "atomic_dir",
     "atomic_path",
+    "check_space",
     "earlier_summary",
+    "held",
     "remove_stale",
     "staged",
     "write_json",
@@ -81,6 +86,79 @@ def staged(folder: str | Path) -> Iterator[Path]:
         shutil.rmtree(tmp)
 
 
+#: the temporaries of this module (``mkstemp``'s and ``mkdtemp``'s 8 random characters after a
+#: leading dot: ``.summary.json.k2j4_a9x.tmp``, ``.staged.q0a1b2c3.tmp``, ``.trials.x1y2z3w4.old``)
+#: and of ``irc report``'s scratch folder (``.report.ab12cd34``); a recording's keeps its
+#: format's suffix (``.a.csv.k2j4_a9x.tmp.csv``)
+_TEMPORARY = re.compile(
+    r"\..*\.[a-z0-9_]{8}(\.tmp(\.npz|\.csv|\.csv\.gz|\.nwb)?|\.old)|\.report\.[a-z0-9_]{8}"
+)
+
+
+@contextmanager
+def held(folder: str | Path, field: str = "--out") -> Iterator[Path]:
+    """Hold ``folder`` for one run, made where it is not: a second run into it meanwhile is
+    refused (both would write their files there, the last summary winning over a mixture),
+    and the temporaries of a run killed before its cleanup (``kill -9``, a node lost) are
+    removed, no run being left to own them. A folder made here and left empty is removed.
+
+    The hold is an advisory ``flock`` of the folder, released with the process however it
+    ends; where the file system has none (Windows, some network mounts) nothing is held or
+    removed."""
+    folder = Path(folder)
+    made = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        locked = _lock(fd, folder, field)
+        if locked:
+            _remove_temporaries(folder)
+        yield folder
+    finally:
+        os.close(fd)  # releases the lock
+        if made and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+
+
+def _lock(fd: int, folder: Path, field: str) -> bool:
+    """Take ``folder``'s exclusive lock; refuse it held by another process, ``False`` where
+    locks are not supported."""
+    if sys.platform == "win32":
+        return False
+    import fcntl
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as error:
+        if error.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            return False  # e.g. ENOLCK: a file system without locks
+        raise ValueError(
+            f"{field}: {folder} is in use by another irc run (its files would mix with this "
+            "run's); wait for it to end, or choose another folder"
+        ) from None
+    return True
+
+
+def _remove_temporaries(folder: Path) -> None:
+    """Remove this module's temporaries in ``folder`` and its subfolders one level down."""
+    for path in folder.iterdir():
+        if _TEMPORARY.fullmatch(path.name):
+            _remove(path)
+    for parent in folder.iterdir():
+        if parent.is_dir() and not parent.is_symlink():
+            for path in parent.iterdir():
+                if _TEMPORARY.fullmatch(path.name):
+                    _remove(path)
+
+
+def _remove(path: Path) -> None:
+    """Remove a file, a link or a folder with its files."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
 def _move(source: Path, path: Path) -> None:
     """Rename ``source`` onto ``path``. A folder cannot be renamed over a non-empty one (nor a
     file over a folder), so such a ``path`` is first moved aside and removed once ``source``
@@ -92,6 +170,22 @@ def _move(source: Path, path: Path) -> None:
     os.replace(source, path)
     if old is not None:
         shutil.rmtree(old)
+
+
+def check_space(folder: str | Path, nbytes: int, what: str) -> None:
+    """Refuse to write ``nbytes`` into ``folder`` where its file system has less free: a
+    memmap written past a full disk ends the process with SIGBUS, not an error."""
+    free = shutil.disk_usage(folder).free
+    if nbytes > free:
+        raise OSError(
+            errno.ENOSPC,
+            f"No space left on device: {what} needs {_megabytes(nbytes)}, its file system has "
+            f"{_megabytes(free)} free",
+        )
+
+
+def _megabytes(nbytes: int) -> str:
+    return f"{nbytes / 1e6:.3g} MB"
 
 
 def _umask() -> int:

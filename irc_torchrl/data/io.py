@@ -11,11 +11,14 @@ held trials back; every write goes to a temporary file or folder renamed when co
 from __future__ import annotations
 
 import csv
+import gzip
 import importlib
+import io
 import json
 import math
 import warnings
 import zipfile
+import zlib
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import ModuleType
@@ -25,7 +28,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical
 
-from irc_torchrl.data.files import atomic_dir, atomic_path
+from irc_torchrl.data.files import atomic_dir, atomic_path, check_space
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.data.units import convert_units, unwrap_angles
 from irc_torchrl.data.validate import (
@@ -46,12 +49,13 @@ __all__ = [
     "load_memmap",
     "nwb_module",
     "read_trials",
+    "recording_suffix",
     "write_trials",
     "trials_to_columns",
 ]
 
 #: the file formats a recording may have (else a TensorDict memmap folder)
-SUFFIXES = (".npz", ".csv", ".nwb")
+SUFFIXES = (".npz", ".csv", ".csv.gz", ".nwb")
 
 #: the median time step may differ from the model's by this fraction before resampling
 RESAMPLE_TOLERANCE = 0.01
@@ -130,10 +134,10 @@ def read_trials(
 def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> Path:
     """Write one agent's held trials (``[n_trials, T]``, or ``[1, n_trials, T]``) to ``path``.
 
-    The format follows the suffix (``.npz``, ``.csv``, ``.nwb``); a path without a suffix is
-    a TensorDict memmap folder. Only the recorded steps (``mask``) are written to the tables;
-    the folder keeps the padded layout. A recording is one agent's, as :func:`read_trials`
-    and ``irc fit`` read it: several agents are refused, not pooled into one.
+    The format follows the suffix (``.npz``, ``.csv``, ``.csv.gz``: gzip-compressed, ``.nwb``);
+    a path without a suffix is a TensorDict memmap folder. Only the recorded steps (``mask``)
+    are written to the tables; the folder keeps the padded layout. A recording is one agent's,
+    as :func:`read_trials` and ``irc fit`` read it: several agents are refused, not pooled.
     """
     path = Path(path)
     _one_agent(trials, "trials")
@@ -142,12 +146,15 @@ def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> 
         held = trials.select(*TRIAL_KEYS).clone()
         held["time"] = _field(trials, "time", model)
         held["trial"] = _field(trials, "trial", model)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        size = sum(t.nbytes for t in held.values(include_nested=True, leaves_only=True))
+        check_space(path.parent, size, f"the memmap recording {path.name}")
         with atomic_dir(path) as tmp:
             held.memmap(tmp)
         return path
     writer = _writer(path)
     columns = trials_to_columns(trials, model)
-    with atomic_path(path, suffix=f".tmp{path.suffix}") as tmp:
+    with atomic_path(path, suffix=f".tmp{recording_suffix(path)}") as tmp:
         writer(columns, tmp, model)
     return path
 
@@ -194,32 +201,48 @@ Writer = Callable[[Columns, Path, TaskModel], None]
 def _reader(path: Path) -> Reader:
     if path.is_dir():
         memmap = (path / "meta.json").is_file()
-        inside = [] if memmap else sorted(f for f in path.iterdir() if f.suffix in SUFFIXES)
+        inside = [] if memmap else sorted(f for f in path.iterdir() if _suffixed(f))
         if inside:  # a session's folder of recordings
             names = ", ".join(f.name for f in inside[:3]) + (", ..." if len(inside) > 3 else "")
             raise ValueError(
                 f"{path}: a folder of recordings ({names}), not a TensorDict memmap folder; "
                 f"expected one recording per path: give the files (e.g. "
-                f"{path}/*{inside[0].suffix})"
+                f"{path}/*{recording_suffix(inside[0])})"
             )
         return _read_memmap
-    readers = dict(zip(SUFFIXES, (_read_npz, _read_csv, _read_nwb), strict=True))
-    if path.suffix not in readers:
+    readers = dict(zip(SUFFIXES, (_read_npz, _read_csv, _read_csv, _read_nwb), strict=True))
+    if not _suffixed(path):
         raise ValueError(
             f"{path}: unknown format {path.suffix!r}; expected {', '.join(SUFFIXES)} "
             "or a TensorDict memmap folder"
         )
-    return readers[path.suffix]
+    return readers[recording_suffix(path)]
 
 
 def _writer(path: Path) -> Writer:
-    writers = dict(zip(SUFFIXES, (_write_npz, _write_csv, _write_nwb), strict=True))
-    if path.suffix not in writers:
+    writers = dict(zip(SUFFIXES, (_write_npz, _write_csv, _write_csv, _write_nwb), strict=True))
+    if not _suffixed(path):
         raise ValueError(
             f"{path}: unknown format {path.suffix!r}; expected {', '.join(SUFFIXES)} "
             "or no suffix for a TensorDict memmap folder"
         )
-    return writers[path.suffix]
+    return writers[recording_suffix(path)]
+
+
+def recording_suffix(path: str | Path) -> str:
+    """A recording's format suffix: ``.csv.gz`` for a gzip-compressed CSV, else the path's
+    last suffix (``""`` for a memmap folder)."""
+    path = Path(path)
+    return ".csv.gz" if path.name.endswith(".csv.gz") else path.suffix
+
+
+def _suffixed(path: Path) -> bool:
+    """Whether ``path`` ends in the suffix of a recording's file format."""
+    return recording_suffix(path) in SUFFIXES
+
+
+def _gzipped(path: Path) -> bool:
+    return path.name.endswith(".gz")
 
 
 def _used_columns(model: TaskModel, time_column: str, trial_column: str) -> Callable[[str], bool]:
@@ -259,13 +282,16 @@ def _write_npz(columns: Columns, tmp: Path, model: TaskModel) -> None:
 
 def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: Excel's byte-order mark
+        opened = gzip.open if _gzipped(path) else open
+        with opened(path, "rt", newline="", encoding="utf-8-sig") as f:  # -sig: Excel's BOM
             reader = csv.reader(f)  # with each row's line in the file, blank lines skipped
             read = [(reader.line_num, row) for row in reader if row]
     except (UnicodeDecodeError, csv.Error) as err:
         raise ValueError(
             f"{path}: not a CSV text file ({err}); expected comma-separated values"
         ) from err
+    except (gzip.BadGzipFile, EOFError, zlib.error) as err:
+        raise ValueError(f"{path}: a damaged gzip file ({err}); write it again") from None
     if not read:
         return {}
     lines, rows = zip(*read, strict=True)
@@ -314,10 +340,13 @@ def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
         else [f"{v:.9g}" for v in col.tolist()]
         for col in columns.values()
     ]
-    with open(tmp, "w", newline="") as f:
-        writer = csv.writer(f, lineterminator="\n")  # csv's default is "\r\n", even here
-        writer.writerow(names)
-        writer.writerows(zip(*cells, strict=True))
+    text = io.StringIO(newline="")
+    writer = csv.writer(text, lineterminator="\n")  # csv's default is "\r\n", even here
+    writer.writerow(names)
+    writer.writerows(zip(*cells, strict=True))
+    data = text.getvalue().encode()
+    # compressed without a time stamp or a name: the same trials give the same bytes
+    tmp.write_bytes(gzip.compress(data, mtime=0) if _gzipped(tmp) else data)
 
 
 def load_memmap(path: str | Path) -> TensorDict:
