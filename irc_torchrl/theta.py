@@ -20,6 +20,10 @@ from irc_torchrl.checks import real, shown
 
 __all__ = ["Parameter", "ThetaSpace"]
 
+#: unconstrained coordinates from which θ is on its bound (an interval's end unbounded by the
+#: data, clamped here to stay finite)
+_ENDS = 40.0
+
 
 @dataclass(frozen=True)
 class Parameter:
@@ -35,8 +39,11 @@ class Parameter:
     def __post_init__(self) -> None:
         """Store the bounds and default as floats, refusing what would make θ NaN: a name
         that is not a string, a bound that is not a finite real number, an empty range."""
-        if not isinstance(self.name, str) or not self.name:
-            raise ValueError(f"parameter name: expected a non-empty string, got {self.name!r}")
+        if not isinstance(self.name, str) or not self.name.isidentifier():
+            raise ValueError(
+                "parameter name: expected a Python identifier (letters, digits, underscores: "
+                f"the key of a theta.<name>= setting, an item of --free a,b), got {self.name!r}"
+            )
         for key in ("unit", "doc"):
             if not isinstance(getattr(self, key), str):
                 raise ValueError(
@@ -52,6 +59,12 @@ class Parameter:
         if not self.low < self.high:
             raise ValueError(
                 f"parameter {self.name!r}: expected low < high, got [{self.low}, {self.high}]"
+            )
+        low, high = torch.tensor([self.low, self.high], dtype=torch.float32).tolist()
+        if not low < high:  # θ is float32: a range of one float32 value makes it NaN normalised
+            raise ValueError(
+                f"parameter {self.name!r}: expected low < high in float32 (θ's dtype), got "
+                f"[{self.low}, {self.high}], both {low} in float32"
             )
         if not self.low <= self.default <= self.high:
             raise ValueError(
@@ -243,9 +256,11 @@ class ThetaSpace:
         return torch.logit(p)
 
     def from_unconstrained(self, u: torch.Tensor) -> torch.Tensor:
-        """Unconstrained reals to natural units."""
+        """Unconstrained reals to natural units; from ±40 on (an interval's end with no bound
+        from the data) the bound itself, where the logistic is within 4e-18 of it."""
         low, high = self.low(u.dtype, u.device), self.high(u.dtype, u.device)
-        return low + (high - low) * torch.sigmoid(u)
+        natural = low + (high - low) * torch.sigmoid(u)
+        return torch.where(u <= -_ENDS, low, torch.where(u >= _ENDS, high, natural))
 
     def normalise(self, theta: torch.Tensor) -> torch.Tensor:
         """Natural units to the box [-1, 1], the form networks read."""

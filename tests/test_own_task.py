@@ -28,13 +28,16 @@ from irc_torchrl.algorithms.ensemble import (
     load_ensemble_policy,
     train_ensemble,
 )
+from irc_torchrl.algorithms.fit import fit_theta
 from irc_torchrl.algorithms.recover2d import predicted_widths
 from irc_torchrl.checkpoint import load_checkpoint
 from irc_torchrl.cli import main
 from irc_torchrl.envs.firefly1d import Firefly1DModel
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.modules.actor_critic import make_actor
+from irc_torchrl.objectives.inverse import InverseRationalLoss
 
 
 @pytest.fixture(scope="module")
@@ -363,6 +366,17 @@ def test_irc_train_refuses_a_model_it_cannot_train_before_any_work(
     assert not out.exists()
 
 
+def test_a_task_file_imports_the_modules_beside_it(tmp_path, capsys):
+    """A task file that imports a module of its own folder failed (`No module named ...`) where
+    `python FILE.py` would run: the file's folder is searched as Python's script folder is."""
+    shutil.copy(EXAMPLES / "define_your_task.py", tmp_path / "lab_tasks.py")
+    (tmp_path / "my_task.py").write_text("from lab_tasks import ReachModel  # noqa: F401\n")
+    argv = ["train", "--model", f"{tmp_path / 'my_task.py'}:ReachModel", "--quiet", *SHORT]
+    assert main([*argv, "--out", str(tmp_path / "run"), "task=firefly2d"]) == 2
+    err = capsys.readouterr().err  # refused past the import, for the setting
+    assert "config: task must be the model's, 'reach_and_hold', got 'firefly2d'" in err, err
+
+
 def test_irc_simulate_and_fit_take_a_task_named_on_the_command_line(own_task, tmp_path, capsys):
     """``irc simulate`` and ``irc fit`` with ``--model`` and the task's checkpoint: recordings
     in the task's own columns, and θ̂ from them (2 agents × 20 trials at one θ*; tolerances:
@@ -607,3 +621,115 @@ def test_predicted_widths_narrow_with_the_trials_of_an_own_task(reach, own_task)
     widths = predicted_widths(result.model, result.actor, n_trials=(10, 40), n_agents=3)
     for name in ("g", "obs_sigma"):
         assert 0.3 < widths[40][name] / widths[10][name] < 0.7, (name, widths)
+
+
+# --- the probe of a task's methods ------------------------------------------------------------
+def _faulty(reach, **methods):
+    """The example's task with ``methods`` replaced (each a function of the model's self)."""
+    return type("Faulty", (reach.ReachModel,), {"name": "faulty", **methods})()
+
+
+def _detached(self, state, action, theta):
+    return type(self).__mro__[1].transition(self, state, action, theta.detach())
+
+
+def _branching(self, state, action, theta):  # a Python branch on a tensor's value
+    x, v = state[..., :1], state[..., 1:]
+    v = v + self.parameter(theta, "g") * action * self.dt if float(v.sum()) >= 0 else v
+    return torch.cat([x + v * self.dt, v], -1)
+
+
+@pytest.mark.parametrize(
+    "methods, message",
+    [
+        ({"observe": TaskModel.observe, "observation_cov": TaskModel.observation_cov},
+         r"model\.observe: expected \[\*B, 1\] \(\[2, 1\] for inputs of batch \[2\]\), got "
+         r"\[2, 0\] \(a task with observations, observation_dim > 0, overrides observe"),
+        ({"process_cov": lambda self, s, a, th: torch.ones(*s.shape[:-1], 1, 1) * 1e-4},
+         r"model\.process_cov: expected \[\*B, 2, 2\] \(\[2, 2, 2\] .*got \[2, 1, 1\]"),
+        ({"process_cov": lambda self, s, a, th: torch.tensor([[1.0, 0.5], [0.0, 1.0]]).expand(
+            *s.shape[:-1], 2, 2)},
+         r"model\.process_cov: expected a symmetric covariance"),
+        ({"observation_cov": lambda self, s, th: -torch.ones(*s.shape[:-1], 1, 1)},
+         r"model\.observation_cov: expected a positive semi-definite covariance"),
+        ({"transition": lambda self, s, a, th: s[..., 0]},
+         r"model\.transition: expected \[\*B, 2\] .*got \[2\]$"),
+        ({"transition": lambda self, s, a, th: s.double()},
+         r"model\.transition: expected torch\.float32 \(the dtype of initial_state's state\), "
+         r"got torch\.float64"),
+        ({"transition": _detached},
+         r"model\.transition: its output moves with θ parameter 'g' \(a finite difference\) "
+         r"but carries no gradient to it \(autograd\); expected every method differentiable"),
+        ({"transition": _branching},
+         r"model\.transition_jacobian: failed on inputs .* override it with an analytic "
+         r"Jacobian$"),
+        ({"stops": lambda self, a, step: torch.zeros_like(step, dtype=torch.float32)},
+         r"model\.stops: expected torch\.bool"),
+        ({"initial_state": lambda self, th, g: torch.zeros(*th.shape[:-1], 2)},
+         r"model\.initial_state: expected a pair of tensors \[\[2, 2\], \[2, 1\]\] .*got "
+         r"Tensor$"),
+        ({"belief_reward": lambda self, m, c, t, a, s, th: (m[..., :1] - 2).log()},
+         r"model\.belief_reward: NaN or inf at the default θ \(g=1, sigma_v=0\.05, "
+         r"obs_sigma=0\.05, effort_cost=0\.1\); expected finite values"),
+        ({"belief_feature_dim": 6},
+         r"model\.belief_features: expected \[\*B, 10\] .*got \[2, 9\]$"),
+    ],
+)  # fmt: skip
+def test_a_task_whose_methods_return_the_wrong_thing_is_refused_naming_the_method(
+    reach, methods, message
+):
+    """A task's own methods were called deep inside rollouts and fits: a missing observe ran
+    with no observation, a [*B, 1, 1] covariance broadcast the same noise into both states, a
+    θ detached fitted "not identified", and other faults came out as torch's errors naming
+    neither the method nor the form. The env and the inverse (both estimators) probe them."""
+    model = _faulty(reach, **methods)
+    with pytest.raises(ValueError, match=message):
+        TaskEnv(model, batch_size=(3,))
+    for method in ("map", "marginal"):
+        with pytest.raises(ValueError, match=message):
+            InverseRationalLoss(model, reach.controller_action_model(model), method=method)
+
+
+def test_nan_from_a_tasks_dynamics_at_a_theta_off_the_default_names_the_method(reach):
+    """NaN states (here sqrt(g - 0.8), NaN for g < 0.8, inside the prior) were blamed on the
+    action two steps later ('action: expected finite values'); the step names the method
+    and the world's θ, and other θ step on."""
+
+    def transition(self, state, action, theta):
+        root = (self.parameter(theta, "g") - 0.8).sqrt()
+        return reach.ReachModel.transition(self, state, action, theta * root / root)
+
+    model = _faulty(reach, transition=transition)
+    space = model.theta_space
+    theta = torch.stack([space.from_dict({"g": g}) for g in (1.2, 0.6)])
+    env = TaskEnv(model, batch_size=(2,), theta=theta, seed=0)
+    td = env.reset()
+    td["action"] = torch.full((2, 1), 0.5)
+    with pytest.raises(
+        ValueError,
+        match=r"^model\.transition \(with process_cov's noise\): NaN or inf at the world's θ "
+        r"\(g=0\.6, sigma_v=0\.05, obs_sigma=0\.05, effort_cost=0\.1\); expected finite values",
+    ):
+        env.step(td)
+    fine = TaskEnv(model, batch_size=(1,), theta=theta[:1], seed=0).rollout(5)
+    assert torch.isfinite(fine["next", "state"]).all()
+
+
+def test_a_fit_skips_the_screened_theta_where_a_task_gives_nan(reach):
+    """A task NaN in part of its prior (sqrt(g - 0.7), g in [0.5, 2]): the screen ranked the
+    NaN draws first (topk sorts NaN above every number) and the fit died in linalg (map) or
+    in the outer filter's Cholesky (marginal); those draws are named and not started from."""
+
+    def transition(self, state, action, theta):
+        root = (self.parameter(theta, "g") - 0.7).sqrt()
+        return reach.ReachModel.transition(self, state, action, theta * root / root)
+
+    model = _faulty(reach, transition=transition)
+    theta, trials = reach.simulate(model, reach.controller_policy(model), 5, seed=0)
+    held = trials[:1]
+    for method in ("map", "marginal"):
+        loss = InverseRationalLoss(model, reach.controller_action_model(model), method=method)
+        with pytest.warns(UserWarning, match=r"fit: the log-likelihood is NaN at \d+ of 16 "):
+            result = fit_theta(loss, held, n_starts=1, n_screen=16, max_iter=3, seed=0)
+        assert torch.isfinite(result.theta_hat).all() and result.theta_hat[0, 0] > 0.7, method
+        assert torch.isfinite(result.log_likelihood).all(), method

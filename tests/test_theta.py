@@ -63,8 +63,7 @@ def test_from_unconstrained_respects_bounds_for_extreme_inputs(dtype):
     theta = space.from_unconstrained(u)
     assert torch.isfinite(theta).all()
     assert (theta >= space.low(dtype)).all() and (theta <= space.high(dtype)).all()
-    torch.testing.assert_close(theta[0], space.low(dtype))
-    torch.testing.assert_close(theta[1], space.high(dtype))
+    assert torch.equal(theta[0], space.low(dtype)) and torch.equal(theta[1], space.high(dtype))
     # the bounds themselves map to finite unconstrained values (clamped logit)
     edges = torch.stack([space.low(dtype), space.high(dtype)])
     assert torch.isfinite(space.to_unconstrained(edges)).all()
@@ -186,6 +185,27 @@ def test_construction_errors():
         Parameter("a", 0, 1, 2.0)
     with pytest.raises(ValueError, match="a=3"):
         ThetaSpace([Parameter("a", 0, 1, 0.5)], fixed={"a": 3})
+
+
+@pytest.mark.parametrize(
+    "name, low, high, message",
+    [
+        ("effort=cost", 0.0, 1.0, r"parameter name: expected a Python identifier .*'effort=cost'"),
+        ("obs,sigma", 0.0, 1.0, r"got 'obs,sigma'"),
+        ("obs sigma", 0.0, 1.0, r"got 'obs sigma'"),
+        ("", 0.0, 1.0, r"got ''"),
+        ("k", 300.0, 300.00001, r"'k': expected low < high in float32 \(θ's dtype\), got "
+         r"\[300\.0, 300\.00001\], both 300\.0 in float32"),
+    ],
+)  # fmt: skip
+def test_parameter_refuses_a_name_settings_cannot_address_and_a_range_float32_cannot_hold(
+    name, low, high, message
+):
+    """`theta.effort=cost=0.2` and `--free obs,sigma` could not name such parameters; a range
+    of one float32 value made θ NaN when normalised."""
+    with pytest.raises(ValueError, match=message):
+        Parameter(name, low, high, low)
+    assert Parameter("σ_v", 0.0, 1.0, 0.5).name == "σ_v"  # an identifier of any script
 
 
 @pytest.mark.parametrize(

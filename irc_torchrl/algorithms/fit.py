@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -1074,6 +1075,22 @@ def _fisher_scoring(
     return -ll.sum(1), -score.sum(1), drawn.mT @ drawn
 
 
+def _warn_undefined(
+    loss: InverseRationalLoss, candidates: torch.Tensor, undefined: torch.Tensor
+) -> None:
+    """Warn of screened candidates whose likelihood is NaN (the task's methods give NaN there),
+    naming the first: they are ranked last, not started from."""
+    agent, row = undefined.nonzero()[0].tolist()
+    theta = loss.theta(candidates[agent, row].unsqueeze(0))[0].cpu()
+    shown = ", ".join(f"{k}={v:.4g}" for k, v in loss.theta_space.to_dict(theta).items())
+    warnings.warn(
+        f"fit: the log-likelihood is NaN at {int(undefined.sum())} of {undefined.numel()} "
+        f"screened (agent, θ) pairs, the first at θ ({shown}): the task's methods give NaN "
+        "there (expected finite values for every θ in its space); those θ are not started from",
+        stacklevel=3,
+    )
+
+
 def _screen_starts(
     loss: InverseRationalLoss,
     trials: TensorDictBase,
@@ -1126,6 +1143,10 @@ def _screen_starts(
                 for u, v, d in zip(*(x.split(SCREEN_ROWS) for x in pairs), strict=True)
             ]
         ).view(n_agents, n_candidates)
+    undefined = scores.isnan()
+    if bool(undefined.any()):
+        _warn_undefined(loss, candidates, undefined)
+        scores = scores.masked_fill(undefined, -torch.inf)  # topk ranks NaN first
     n = min(n_starts, candidates.shape[1])
     best = scores.topk(n, dim=1).indices  # [A, n]
     chosen = candidates.gather(1, best.unsqueeze(-1).expand(-1, -1, candidates.shape[-1]))

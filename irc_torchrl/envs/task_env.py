@@ -12,7 +12,8 @@ from torchrl.envs import EnvBase
 
 from irc_torchrl.checks import resolve_device
 from irc_torchrl.checks import seed as check_seed
-from irc_torchrl.envs.model import TaskModel, action_in_spec, check_action_spec
+from irc_torchrl.envs.model import TaskModel, action_in_spec
+from irc_torchrl.envs.probe import check_model
 
 __all__ = ["TaskEnv"]
 
@@ -58,7 +59,7 @@ class TaskEnv(EnvBase):
             if self.model_class is None:
                 raise TypeError("model: TaskEnv needs a TaskModel (or use a task's env subclass)")
             model = self.model_class()
-        check_action_spec(model)
+        check_model(model)
         self.model = model
         self.theta = None if theta is None else self._check_theta(theta, "theta")
         self.task_theta = (
@@ -181,6 +182,27 @@ class TaskEnv(EnvBase):
             f"spec, got values in [{action.min().item()}, {action.max().item()}]"
         )
 
+    def _check_finite(
+        self, next_state: torch.Tensor, reward: torch.Tensor, task_theta: torch.Tensor
+    ) -> None:
+        """Refuse a step the task's own methods made NaN or inf (at a θ the constructor's probe
+        did not try), naming the method, before the NaN reaches a belief and an action."""
+        finite = {
+            "transition (with process_cov's noise)": torch.isfinite(next_state).all(-1),
+            "reward": torch.isfinite(reward).reshape(*self.batch_size, -1).all(-1),
+        }
+        if bool(torch.stack(list(finite.values())).all()):
+            return
+        for method, ok in finite.items():
+            if not bool(ok.all()):
+                theta = task_theta[~ok][0].cpu()
+                values = self.model.theta_space.to_dict(theta.to(torch.float32))
+                shown = ", ".join(f"{name}={value:.4g}" for name, value in values.items())
+                raise ValueError(
+                    f"model.{method}: NaN or inf at the world's θ ({shown}); expected finite "
+                    "values for every θ in its space and every action"
+                )
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         m = self.model
         state, action, step = tensordict["state"], tensordict["action"], tensordict["step"]
@@ -190,6 +212,7 @@ class TaskEnv(EnvBase):
         reward = m.reward(state, target, action, stop, task_theta)
         next_state = m.transition(state, action, task_theta)
         next_state = next_state + self._sample_noise(m.process_cov(state, action, task_theta))
+        self._check_finite(next_state, reward, task_theta)
         next_step = step + 1
         timeout = next_step >= m.max_steps
         out = {

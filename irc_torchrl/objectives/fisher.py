@@ -179,5 +179,5 @@ def narrow(space: ThetaSpace, low: torch.Tensor, high: torch.Tensor) -> torch.Te
 def _embed(space: ThetaSpace, u_free: torch.Tensor, n: int) -> torch.Tensor:
     """Unconstrained ``[n, d]`` with the free coordinates set (the rest are irrelevant zeros)."""
     u = torch.zeros(n, space.dim, dtype=u_free.dtype, device=u_free.device)
-    u[:, space.free_mask.to(u_free.device)] = u_free.clamp(-40, 40)
+    u[:, space.free_mask.to(u_free.device)] = u_free.clamp(-40, 40)  # on the bound from ±40
     return u

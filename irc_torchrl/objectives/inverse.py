@@ -21,7 +21,8 @@ from torchrl.objectives import LossModule
 from irc_torchrl.checks import count, first_line
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
-from irc_torchrl.envs.model import TaskModel, check_action_spec, continuous_actions
+from irc_torchrl.envs.model import TaskModel, continuous_actions
+from irc_torchrl.envs.probe import check_model
 from irc_torchrl.objectives.marginal import (
     FINAL_STEPS,
     MOMENT_RULES,
@@ -92,7 +93,7 @@ class InverseRationalLoss(LossModule):
         final_steps: int = FINAL_STEPS,
     ) -> None:
         super().__init__()
-        check_action_spec(model)
+        check_model(model)
         n_agents = count("n_agents", n_agents)
         if world not in ("known", "shared"):
             raise ValueError(f"world: expected 'known' or 'shared', got {world!r}")
@@ -114,8 +115,6 @@ class InverseRationalLoss(LossModule):
         self.method = method
         self.moments = moments
         check_mixture(model, components, final_steps)
-        if method == "map":
-            _check_broadcast_features(model)
         self.components, self.final_steps = components, final_steps
         self.model = model
         self.action_model = action_model
@@ -563,27 +562,3 @@ def _probe(
     logp = action_model.log_prob(features.expand(n, -1), action, nuisance, *extra)
     mass = float(logp.exp().sum())  # NaN (a Q undefined there) is not judged
     return f"probabilities summing to {mass:.3g}" if abs(mass - 1) > 1e-3 else None
-
-
-def _check_broadcast_features(model: TaskModel) -> None:
-    """Refuse, before any work, a task whose ``belief_features`` needs its arguments' batch
-    shapes to match: the hard E-step passes beliefs per step beside each trial's target and θ."""
-    space = model.theta_space
-    ds, steps = model.state_dim, 2
-    cpu = torch.device("cpu")  # where θ's default lives, whatever the default device
-    mean = torch.zeros(1, 1, steps, ds, device=cpu)
-    cov = torch.eye(ds, device=cpu).expand(1, 1, steps, ds, ds)
-    target = torch.zeros(1, 1, 1, model.target_dim, device=cpu)
-    step = torch.arange(steps, device=cpu).view(1, 1, steps, 1)
-    theta = space.default().view(1, 1, 1, -1)
-    expected = [1, 1, steps, model.belief_feature_dim + space.dim]
-    try:
-        shape = list(model.belief_features(mean, cov, target, step, theta).shape)
-    except RuntimeError as error:
-        shape = f"an error ({error})"
-    if shape != expected:
-        raise ValueError(
-            f"model.belief_features: expected features {expected} from beliefs "
-            f"[1, 1, {steps}, {ds}] beside a target and θ [1, 1, 1, ·] and steps "
-            f"[1, 1, {steps}, 1] (batch dimensions that broadcast), got {shape}"
-        )

@@ -448,10 +448,13 @@ def _covariance_root(cov: torch.Tensor) -> torch.Tensor:
     """A lower-triangular ``L`` with ``L Lᵀ ≈ cov``, also where round-off left ``cov`` slightly
     indefinite: an action nearly noise-free in the latent (tiny motor noise) conditions the
     outer covariance to rank deficiency, and those rows are loaded just past their lowest
-    eigenvalue (a constant shift, so the gradient still flows through the factor)."""
+    eigenvalue (a constant shift, so the gradient still flows through the factor). A row the
+    task's methods made NaN keeps a NaN root: its likelihood is NaN, the other rows' are not."""
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     root, info = torch.linalg.cholesky_ex(cov + _JITTER * eye)
-    failed = info > 0
+    finite = torch.isfinite(cov).all(-1).all(-1)
+    root = torch.where(finite[..., None, None], root, torch.nan)
+    failed = (info > 0) & finite
     if failed.any():
         low = torch.linalg.eigvalsh(cov[failed].detach())[..., 0]
         scale = cov[failed].detach().diagonal(dim1=-2, dim2=-1).amax(-1)
