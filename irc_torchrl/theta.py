@@ -129,6 +129,19 @@ class ThetaSpace:
     def __eq__(self, other: object) -> bool:
         return isinstance(other, ThetaSpace) and self.to_config() == other.to_config()
 
+    def difference(self, other: ThetaSpace) -> str:
+        """The first way ``other`` differs from this space, in words (``""`` where equal)."""
+        if self.names != other.names:
+            return f"parameters {other.names} against {self.names}"
+        pairs = zip(self.to_config()["parameters"], other.to_config()["parameters"], strict=True)
+        for mine, theirs in pairs:
+            for key, value in mine.items():
+                if theirs[key] != value:
+                    return f"{mine['name']}: {key} {theirs[key]!r} against {value!r}"
+        if self.fixed != other.fixed:
+            return f"fixed {other.to_config()['fixed']} against {self.to_config()['fixed']}"
+        return ""
+
     def __repr__(self) -> str:
         parts = [
             f"{p.name}={self.fixed[p.name]}"

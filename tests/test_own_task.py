@@ -119,8 +119,18 @@ def test_an_own_tasks_checkpoint_carries_its_name_and_loads_only_with_its_model(
     class Narrower(reach.ReachModel):
         theta_space = reach.reach_theta_space().fix(effort_cost=0.1)
 
-    with pytest.raises(ValueError, match="theta_space does not match the model's θ space"):
+    with pytest.raises(
+        ValueError,
+        match=r"theta_space does not match the model's θ space \(fixed \{'sigma_v': 0\.05\} "
+        r"against \{'effort_cost': 0\.1, 'sigma_v': 0\.05\}, the checkpoint's first\)$",
+    ):
         load_ensemble_policy(path, model=Narrower())
+
+    class Wider(reach.ReachModel):
+        theta_space = reach.reach_theta_space().with_range("g", 0.5, 3.0)
+
+    with pytest.raises(ValueError, match=r"\(g: high 2\.0 against 3\.0, the checkpoint's first\)$"):
+        load_ensemble_policy(path, model=Wider())
 
 
 def _reach_beliefs(model) -> TensorDict:

@@ -1215,8 +1215,12 @@ def _load(
         ) from None
     whose = "its own config's" if model is None else "the model's"
     model = make_model(config) if model is None else model
-    if ThetaSpace.from_config(ckpt["theta_space"]) != model.theta_space:
-        raise ValueError(f"checkpoint {ckpt['path']}: theta_space does not match {whose} θ space")
+    difference = model.theta_space.difference(ThetaSpace.from_config(ckpt["theta_space"]))
+    if difference:
+        raise ValueError(
+            f"checkpoint {ckpt['path']}: theta_space does not match {whose} θ space "
+            f"({difference}, the checkpoint's first)"
+        )
     return config, model, ckpt
 
 

@@ -17,6 +17,7 @@ from irc_torchrl.envs.firefly2d import (
 )
 from irc_torchrl.envs.gym_adapter import GYM_ID, Firefly2DGymEnv, register_gym
 from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.probe import check_model
 from irc_torchrl.envs.task_env import TaskEnv
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "GYM_ID",
     "TaskEnv",
     "TaskModel",
+    "check_model",
     "ekf_predict",
     "ekf_step",
     "ekf_update",

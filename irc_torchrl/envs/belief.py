@@ -121,6 +121,11 @@ class EKFBelief(Transform):
 
     The filter runs under the agent's θ (``theta_key``), which may differ from the world's.
     Its state lives in the TensorDict, so partial resets, collectors and buffers just work.
+
+    In float32 the 2D task's covariance stays symmetric positive definite at every corner of
+    θ for 2,000 steps (its trials: 60). Far longer episodes of full-speed turning (from about
+    2,600 steps) grow the position's variance past what float32 holds beside the smallest
+    eigenvalue: cast every key the filter reads to float64 (``DTypeCastTransform``) for them.
     """
 
     def __init__(self, model: TaskModel, theta_key: str = "theta") -> None:

@@ -167,7 +167,8 @@ class TaskModel(abc.ABC):
         The arguments' batch dimensions broadcast, and need not match: the inverse's hard
         E-step passes the beliefs at every step ``[A, n, T, ·]`` beside each trial's target and
         θ ``[A, n, 1, ·]`` and the step ``[1, 1, T, 1]``, so expand the parts to their common
-        batch shape before concatenating them (``InverseRationalLoss`` checks it when built).
+        batch shape before concatenating them (:func:`~irc_torchrl.envs.probe.check_model` checks
+        it when an env or an inverse is built).
         """
 
     @property

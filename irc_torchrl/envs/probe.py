@@ -31,7 +31,8 @@ def check_model(model: TaskModel) -> None:
     or whose outputs move with a θ parameter autograd cannot see (every method must be
     differentiable in θ: the inverse backpropagates through them)."""
     check_action_spec(model)
-    with torch.device("cpu"):  # where θ's default lives, whatever the default device
+    # on the CPU, where θ's default lives, and with gradients even where the caller has none
+    with torch.device("cpu"), torch.inference_mode(False), torch.enable_grad():
         _Probe(model).run()
 
 
