@@ -195,15 +195,15 @@ def _task_model(spec: str | None) -> TaskModel | None:
 
 def _task_file_module(path: Path) -> ModuleType:
     """The module of a task file, registered under its own name (dataclasses, typing and
-    pickling look a class's module up there); its folder goes on ``sys.path``, as ``python
-    FILE.py`` puts it, so that it imports the modules beside it."""
+    pickling look a class's module up there); its folder goes on ``sys.path`` (last: a file
+    there does not shadow an installed module), so that it imports the modules beside it."""
     import importlib.util
 
     if not path.is_file():
         raise FileNotFoundError(f"--model: no file at {path}")
     folder = str(path.resolve().parent)
     if folder not in sys.path:
-        sys.path.insert(0, folder)
+        sys.path.append(folder)
     found = importlib.util.spec_from_file_location(f"irc_task_{path.stem}", path)
     module = importlib.util.module_from_spec(found)
     sys.modules[found.name] = module

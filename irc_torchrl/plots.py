@@ -26,7 +26,7 @@ from matplotlib.patches import Circle, Ellipse  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
 from irc_torchrl.checks import first_line  # noqa: E402
-from irc_torchrl.data.files import atomic_path  # noqa: E402
+from irc_torchrl.data.files import MARK, atomic_path  # noqa: E402
 from irc_torchrl.data.io import load_memmap  # noqa: E402
 from irc_torchrl.objectives.fisher import Z95  # noqa: E402
 
@@ -439,7 +439,7 @@ def report_run(folder: str | Path) -> list[Path]:
             )
     trials = _recovered_trials(summary, folder / "trials")
     # every figure is drawn aside first, so a field found lacking half-way leaves none behind
-    with tempfile.TemporaryDirectory(dir=folder, prefix=".report.") as scratch:
+    with tempfile.TemporaryDirectory(dir=folder, prefix=".report.", suffix=MARK) as scratch:
         try:
             drawn = _report(summary, beliefs, figures, trials, folder, Path(scratch))
         except (KeyError, TypeError, AttributeError, IndexError) as error:

@@ -60,11 +60,16 @@ class Parameter:
             raise ValueError(
                 f"parameter {self.name!r}: expected low < high, got [{self.low}, {self.high}]"
             )
-        low, high = torch.tensor([self.low, self.high], dtype=torch.float32).tolist()
-        if not low < high:  # θ is float32: a range of one float32 value makes it NaN normalised
+        low, high = torch.tensor([self.low, self.high], dtype=torch.float32, device="cpu")
+        if not torch.isfinite(high - low):  # θ is float32: past its range θ is NaN normalised
+            raise ValueError(
+                f"parameter {self.name!r}: expected a range float32 (θ's dtype) holds, within "
+                f"±3.4e38 and narrower than it, got [{self.low}, {self.high}]"
+            )
+        if not low < high:  # a range of one float32 value
             raise ValueError(
                 f"parameter {self.name!r}: expected low < high in float32 (θ's dtype), got "
-                f"[{self.low}, {self.high}], both {low} in float32"
+                f"[{self.low}, {self.high}], both {float(low)} in float32"
             )
         if not self.low <= self.default <= self.high:
             raise ValueError(
@@ -128,6 +133,10 @@ class ThetaSpace:
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, ThetaSpace) and self.to_config() == other.to_config()
+
+    def format(self, theta: torch.Tensor) -> str:
+        """One θ ``[d]`` as ``name=value`` pairs, 4 significant digits (for messages)."""
+        return ", ".join(f"{name}={value:.4g}" for name, value in self.to_dict(theta).items())
 
     def difference(self, other: ThetaSpace) -> str:
         """The first way ``other`` differs from this space, in words (``""`` where equal)."""

@@ -424,21 +424,26 @@ def test_a_belief_filter_of_another_task_and_a_string_of_names_are_refused():
         fit_space(Firefly2DModel().theta_space, "g_v", {})
 
 
-def test_the_hard_e_step_refuses_belief_features_that_do_not_broadcast(shipped):
-    """A task of one's own whose features concatenate their arguments as given works in the env
-    and in marginal, and failed in map's first pass with a bare size error: refused up front."""
+def test_belief_features_that_do_not_broadcast_are_refused_up_front(shipped):
+    """A task of one's own whose features concatenate their arguments as given worked in the
+    env and in marginal, and failed in map's first pass with a bare size error: refused when
+    the env or either estimator is built."""
     actor, model = shipped
 
     class Concatenating(Firefly2DModel):
         def belief_features(self, mean, cov, target, step, theta):
             features = super().belief_features(mean, cov, target, step, theta)
-            return torch.cat([features[..., :1], theta], -1)  # θ not expanded to the steps
+            belief = features[..., : self.belief_feature_dim]
+            return torch.cat([belief, theta], -1)  # θ not expanded to the steps
 
     own = Concatenating()
     action_model = censored_action_model(actor, model)
-    with pytest.raises(ValueError, match=r"^model\.belief_features: expected features \[1, 1, 2,"):
-        InverseRationalLoss(own, action_model, method="map")
-    InverseRationalLoss(own, action_model, method="marginal")
+    message = r"^model\.belief_features: expected features \[1, 1, 2, 23\] from beliefs "
+    for method in ("map", "marginal"):
+        with pytest.raises(ValueError, match=message):
+            InverseRationalLoss(own, action_model, method=method)
+    with pytest.raises(ValueError, match=message):
+        Firefly2DEnv(model=own)
     InverseRationalLoss(model, action_model, method="map")
 
 

@@ -511,7 +511,7 @@ def test_simulating_a_lapse_rate_fit_cannot_reach_says_so(tmp_path, recwarn):
 
 def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeypatch, capsys):
     """kill (SIGTERM, a scheduler's time limit) ended the process where it stood, leaving a
-    .staged.*.tmp folder of half the recordings in --out; it now cleans up as Ctrl-C does."""
+    staging folder of half the recordings in --out; it now cleans up as Ctrl-C does."""
     out = tmp_path / "sim"
     write = recordings.write_trials
 
@@ -597,38 +597,46 @@ def test_a_second_run_into_a_folder_in_use_is_refused_before_any_work(tmp_path, 
 
 def test_a_killed_runs_temporaries_are_removed_by_the_next_run_into_its_folder(tmp_path):
     """A run killed before its cleanup (kill -9) left its staging folder, a half-written file
-    and irc report's scratch in --out for good; the next run holding the folder removes them,
-    and nothing else."""
+    and irc report's scratch in --out for good; the next run holding the folder removes them
+    (from it and its stages/), and nothing else: not a user's dotfiles in an --out that is
+    their home, nor another run's temporaries in a folder below."""
     out = tmp_path / "sim"
     (out / "stages").mkdir(parents=True)
+    (out / "nested").mkdir()
     temporaries = [
-        ".staged.q0a1b2c3.tmp",
-        ".report.ab12cd_4",
-        ".agent0.x1y2z3w4.old",
-        "stages/.draw0.pt.k2j4_a9x.tmp",
+        ".staged.q0a1b2c3.irc-tmp",
+        ".report.ab12cd_4.irc-tmp",
+        ".agent0.x1y2z3w4.irc-tmp",
+        "stages/.draw0.pt.k2j4_a9x.irc-tmp",
     ]
     for name in temporaries:
         (out / name).mkdir()
         (out / name / "half").write_text("")
-    for name in [".summary.json.abcdefgh.tmp", ".agent0.csv.abcdefgh.tmp.csv"]:
+    for name in [".summary.json.abcdefgh.irc-tmp", ".agent0.csv.abcdefgh.irc-tmp.csv"]:
         (out / name).write_text("")
         temporaries.append(name)
-    kept = [".notes.tmp", "notes.txt", ".x.abcdefgh.tmp.bak", "stages/.plan.abcdefgh"]
+    kept = [
+        *(".notes.tmp", "notes.txt", ".x.abcdefgh.tmp", ".bashrc.20240101.old"),
+        *(".report.20240101", ".summary.json.abcdefgh.irc-tmp.bak"),
+        *("stages/.plan.abcdefgh", "nested/.staged.q0a1b2c3.irc-tmp"),
+    ]
     for name in kept:
         (out / name).write_text("mine")
+    (out / ".config.20231231.old").mkdir()
     simulate = ["simulate", "--out", str(out), "--quiet", "n_agents=1", "n_trials=1"]
     assert main(simulate) == 0
     assert not [name for name in temporaries if (out / name).exists()]
     assert all((out / name).read_text() == "mine" for name in kept)
+    assert (out / ".config.20231231.old").is_dir()
 
 
 def test_a_refused_run_leaves_no_out_folder_it_made(tmp_path, capsys):
-    """The hold makes --out before the run; a run refused inside (a setting out of range)
-    leaves no empty folder behind."""
-    out = tmp_path / "a" / "sim"
+    """The hold makes --out (and the folders above it) before the run; a run refused inside
+    (a setting out of range) leaves no empty folder behind."""
+    out = tmp_path / "a" / "b" / "sim"
     assert main(["simulate", "--out", str(out), "--quiet", "n_agents=0"]) == 2
     assert "n_agents" in capsys.readouterr().err
-    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_memmap_recording_larger_than_the_free_space_is_refused_before_writing(

@@ -130,7 +130,7 @@ def test_pruning_keeps_the_stages_of_this_key_only(tmp_path):
     stages.fit("fit_map", lambda: _result(1))
     Stages(tmp_path, "new").fit("calibration2_map", lambda: _result(2))  # unused, same key
     (tmp_path / "notes.pt").write_text("not a stage")
-    (tmp_path / ".fit_marginal.pt.x1y2.tmp").write_text("")  # a save killed part-way
+    (tmp_path / ".fit_marginal.pt.x1y2z3w4.irc-tmp").write_text("")  # a save killed part-way
     stages.prune()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration2_map.pt", "fit_map.pt"]
 

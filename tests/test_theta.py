@@ -196,6 +196,9 @@ def test_construction_errors():
         ("", 0.0, 1.0, r"got ''"),
         ("k", 300.0, 300.00001, r"'k': expected low < high in float32 \(θ's dtype\), got "
          r"\[300\.0, 300\.00001\], both 300\.0 in float32"),
+        ("k", -1e39, 1e39, r"'k': expected a range float32 \(θ's dtype\) holds, within "
+         r"±3\.4e38 and narrower than it, got \[-1e\+39, 1e\+39\]"),
+        ("k", -3e38, 3e38, r"'k': expected a range float32"),
     ],
 )  # fmt: skip
 def test_parameter_refuses_a_name_settings_cannot_address_and_a_range_float32_cannot_hold(

@@ -1075,20 +1075,31 @@ def _fisher_scoring(
     return -ll.sum(1), -score.sum(1), drawn.mT @ drawn
 
 
-def _warn_undefined(
-    loss: InverseRationalLoss, candidates: torch.Tensor, undefined: torch.Tensor
-) -> None:
-    """Warn of screened candidates whose likelihood is NaN (the task's methods give NaN there),
-    naming the first: they are ranked last, not started from."""
+def _skip_undefined(
+    loss: InverseRationalLoss, candidates: torch.Tensor, scores: torch.Tensor, n: int
+) -> torch.Tensor:
+    """``scores [A, c]`` with the NaN ones ranked last (topk ranks NaN first), warning of them
+    by the first such θ; an agent left with fewer than ``n`` finite ones is refused."""
+    undefined = scores.isnan()
+    if not bool(undefined.any()):
+        return scores
     agent, row = undefined.nonzero()[0].tolist()
-    theta = loss.theta(candidates[agent, row].unsqueeze(0))[0].cpu()
-    shown = ", ".join(f"{k}={v:.4g}" for k, v in loss.theta_space.to_dict(theta).items())
+    where = f"θ ({loss.theta_space.format(loss.theta(candidates[agent, row][None])[0].cpu())})"
+    cause = "the task's methods (or the trials) give NaN there; expected finite values for "
+    short = ((~undefined).sum(1) < n).nonzero().flatten().tolist()
+    if short:
+        raise ValueError(
+            f"fit: agent {short[0]}'s log-likelihood is NaN at {int(undefined[short[0]].sum())} "
+            f"of its {scores.shape[1]} screened θ, fewer than n_starts={n} left to start from "
+            f"(one at {where}): {cause}every θ in its space"
+        )
     warnings.warn(
         f"fit: the log-likelihood is NaN at {int(undefined.sum())} of {undefined.numel()} "
-        f"screened (agent, θ) pairs, the first at θ ({shown}): the task's methods give NaN "
-        "there (expected finite values for every θ in its space); those θ are not started from",
+        f"screened (agent, θ) pairs, the first at {where}: {cause}every θ in its space; those "
+        "θ are not started from",
         stacklevel=3,
     )
+    return scores.masked_fill(undefined, -torch.inf)
 
 
 def _screen_starts(
@@ -1143,11 +1154,8 @@ def _screen_starts(
                 for u, v, d in zip(*(x.split(SCREEN_ROWS) for x in pairs), strict=True)
             ]
         ).view(n_agents, n_candidates)
-    undefined = scores.isnan()
-    if bool(undefined.any()):
-        _warn_undefined(loss, candidates, undefined)
-        scores = scores.masked_fill(undefined, -torch.inf)  # topk ranks NaN first
     n = min(n_starts, candidates.shape[1])
+    scores = _skip_undefined(loss, candidates, scores, n)
     best = scores.topk(n, dim=1).indices  # [A, n]
     chosen = candidates.gather(1, best.unsqueeze(-1).expand(-1, -1, candidates.shape[-1]))
     return torch.cat([chosen, nuisance.unsqueeze(1).expand(-1, n, -1)], -1).reshape(

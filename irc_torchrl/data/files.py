@@ -3,6 +3,7 @@ folder reads of the earlier run there to remove what it would leave stale."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import json
@@ -20,6 +21,7 @@ import numpy as np
 import torch
 
 __all__ = [
+    "MARK",
     "atomic_dir",
     "atomic_path",
     "check_space",
@@ -34,15 +36,23 @@ __all__ = [
 ]
 
 
+#: what ends the name of every temporary file or folder irc writes (before a format's extension
+#: some writers insist on), so that a later run tells a killed run's from the user's files
+MARK = ".irc-tmp"
+#: a temporary's whole name: ``.summary.json.k2j4_a9x.irc-tmp``, ``.staged.q0a1b2c3.irc-tmp``,
+#: ``.a.csv.k2j4_a9x.irc-tmp.csv`` (``mkstemp``'s and ``mkdtemp``'s 8 random characters)
+_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}" + re.escape(MARK) + r"(\.npz|\.csv|\.csv\.gz|\.nwb)?")
+
+
 @contextmanager
-def atomic_path(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
+def atomic_path(path: str | Path, extension: str = "") -> Iterator[Path]:
     """Yield a temporary path beside ``path``; renamed onto ``path`` only if the block succeeds.
 
-    ``suffix`` ends the temporary name (some writers insist on their format's extension).
+    ``extension`` ends the temporary name (some writers insist on their format's extension).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=MARK + extension)
     os.close(fd)
     try:
         yield Path(tmp)
@@ -59,7 +69,7 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield an empty temporary folder beside ``path``; it replaces ``path`` only on success."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=MARK))
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's is private (0700), mkdir's is not
@@ -77,7 +87,7 @@ def staged(folder: str | Path) -> Iterator[Path]:
     A ``summary.json`` moves last: where it is the new run's, everything else is too."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=folder, prefix=".staged.", suffix=".tmp"))
+    tmp = Path(tempfile.mkdtemp(dir=folder, prefix=".staged.", suffix=MARK))
     try:
         yield tmp
         for entry in sorted(tmp.iterdir(), key=lambda e: (e.name == "summary.json", e.name)):
@@ -86,38 +96,33 @@ def staged(folder: str | Path) -> Iterator[Path]:
         shutil.rmtree(tmp)
 
 
-#: the temporaries of this module (``mkstemp``'s and ``mkdtemp``'s 8 random characters after a
-#: leading dot: ``.summary.json.k2j4_a9x.tmp``, ``.staged.q0a1b2c3.tmp``, ``.trials.x1y2z3w4.old``)
-#: and of ``irc report``'s scratch folder (``.report.ab12cd34``); a recording's keeps its
-#: format's suffix (``.a.csv.k2j4_a9x.tmp.csv``)
-_TEMPORARY = re.compile(
-    r"\..*\.[a-z0-9_]{8}(\.tmp(\.npz|\.csv|\.csv\.gz|\.nwb)?|\.old)|\.report\.[a-z0-9_]{8}"
-)
-
-
 @contextmanager
 def held(folder: str | Path, field: str = "--out") -> Iterator[Path]:
     """Hold ``folder`` for one run, made where it is not: a second run into it meanwhile is
     refused (both would write their files there, the last summary winning over a mixture),
     and the temporaries of a run killed before its cleanup (``kill -9``, a node lost) are
-    removed, no run being left to own them. A folder made here and left empty is removed.
+    removed from it and its ``stages/``, no run being left to own them; only names irc gives
+    its temporaries (:data:`MARK`) are. Folders made here and left empty are removed.
 
     The hold is an advisory ``flock`` of the folder, released with the process however it
-    ends; where the file system has none (Windows, some network mounts) nothing is held or
-    removed."""
+    ends. Where the file system has none (Windows) nothing is held or removed; where its
+    locks are local to each machine (some network mounts), runs on two machines are not
+    kept apart."""
     folder = Path(folder)
-    made = not folder.exists()
+    made = [p for p in (folder, *folder.parents) if not p.exists()]
     folder.mkdir(parents=True, exist_ok=True)
     fd = os.open(folder, os.O_RDONLY)
     try:
-        locked = _lock(fd, folder, field)
-        if locked:
-            _remove_temporaries(folder)
+        if _lock(fd, folder, field):
+            for parent in (folder, folder / "stages"):
+                _remove_temporaries(parent)
         yield folder
     finally:
         os.close(fd)  # releases the lock
-        if made and folder.is_dir() and not any(folder.iterdir()):
-            folder.rmdir()
+        for path in made:  # the deepest first
+            if not path.is_dir() or any(path.iterdir()):
+                break
+            path.rmdir()
 
 
 def _lock(fd: int, folder: Path, field: str) -> bool:
@@ -140,23 +145,17 @@ def _lock(fd: int, folder: Path, field: str) -> bool:
 
 
 def _remove_temporaries(folder: Path) -> None:
-    """Remove this module's temporaries in ``folder`` and its subfolders one level down."""
+    """Remove irc's temporaries in ``folder`` (none where it is not a folder)."""
+    if not folder.is_dir() or folder.is_symlink():
+        return
     for path in folder.iterdir():
-        if _TEMPORARY.fullmatch(path.name):
-            _remove(path)
-    for parent in folder.iterdir():
-        if parent.is_dir() and not parent.is_symlink():
-            for path in parent.iterdir():
-                if _TEMPORARY.fullmatch(path.name):
-                    _remove(path)
-
-
-def _remove(path: Path) -> None:
-    """Remove a file, a link or a folder with its files."""
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)
+        if not _TEMPORARY.fullmatch(path.name):
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):  # another user's, say: theirs to remove
+                path.unlink()
 
 
 def _move(source: Path, path: Path) -> None:
@@ -165,7 +164,7 @@ def _move(source: Path, path: Path) -> None:
     is in place."""
     old = None
     if path.exists() and (source.is_dir() or path.is_dir()):
-        old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+        old = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=MARK))
         os.replace(path, old / path.name)
     os.replace(source, path)
     if old is not None:
@@ -210,7 +209,7 @@ def write_json(path: str | Path, data: object) -> Path:
 
 def write_npz(path: str | Path, arrays: Mapping[str, np.ndarray]) -> Path:
     """Write ``arrays`` into an ``.npz`` archive (plain arrays: it reads back without pickle)."""
-    with atomic_path(path, suffix=".tmp.npz") as tmp, open(tmp, "wb") as f:
+    with atomic_path(path, extension=".npz") as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
     return Path(path)
 

@@ -154,7 +154,7 @@ def write_trials(trials: TensorDictBase, path: str | Path, model: TaskModel) -> 
         return path
     writer = _writer(path)
     columns = trials_to_columns(trials, model)
-    with atomic_path(path, suffix=f".tmp{recording_suffix(path)}") as tmp:
+    with atomic_path(path, extension=recording_suffix(path)) as tmp:
         writer(columns, tmp, model)
     return path
 

@@ -17,6 +17,9 @@ from irc_torchrl.envs.probe import check_model
 
 __all__ = ["TaskEnv"]
 
+#: how a NaN observation is named: the noise-free observation plus its noise's draw
+_OBSERVED = "observe (with observation_cov's noise)"
+
 
 class TaskEnv(EnvBase):
     """The world of a task: true state, target and noisy observations, stepped with ``task_theta``.
@@ -150,8 +153,10 @@ class TaskEnv(EnvBase):
             "target": target,
             "step": torch.zeros(*batch, 1, dtype=torch.int64, device=self.device),
         }
+        made = {"initial_state": torch.cat([state, target], -1)}
         if self.model.observation_dim:
-            fresh["observation"] = self._observe(state, task_theta)
+            fresh["observation"] = made[_OBSERVED] = self._observe(state, task_theta)
+        self._check_finite(made, task_theta)
         # TorchRL keeps the rows that a partial reset (``_reset``) leaves alone
         return TensorDict(fresh, batch_size=batch, device=self.device)
 
@@ -182,26 +187,22 @@ class TaskEnv(EnvBase):
             f"spec, got values in [{action.min().item()}, {action.max().item()}]"
         )
 
-    def _check_finite(
-        self, next_state: torch.Tensor, reward: torch.Tensor, task_theta: torch.Tensor
-    ) -> None:
-        """Refuse a step the task's own methods made NaN or inf (at a θ the constructor's probe
-        did not try), naming the method, before the NaN reaches a belief and an action."""
+    def _check_finite(self, outputs: dict[str, torch.Tensor], task_theta: torch.Tensor) -> None:
+        """Refuse ``outputs`` (by the task's method that made each) holding NaN or inf, at a θ
+        the constructor's probe did not try: named here, before the NaN reaches a belief and
+        an action, with the world's θ of the first element it hit."""
         finite = {
-            "transition (with process_cov's noise)": torch.isfinite(next_state).all(-1),
-            "reward": torch.isfinite(reward).reshape(*self.batch_size, -1).all(-1),
+            method: torch.isfinite(out).reshape(*self.batch_size, -1).all(-1)
+            for method, out in outputs.items()
         }
-        if bool(torch.stack(list(finite.values())).all()):
+        if bool(torch.stack(list(finite.values())).all()):  # one sync for all of them
             return
-        for method, ok in finite.items():
-            if not bool(ok.all()):
-                theta = task_theta[~ok][0].cpu()
-                values = self.model.theta_space.to_dict(theta.to(torch.float32))
-                shown = ", ".join(f"{name}={value:.4g}" for name, value in values.items())
-                raise ValueError(
-                    f"model.{method}: NaN or inf at the world's θ ({shown}); expected finite "
-                    "values for every θ in its space and every action"
-                )
+        method, ok = next((method, ok) for method, ok in finite.items() if not bool(ok.all()))
+        theta = self.model.theta_space.format(task_theta[~ok][0].cpu().to(torch.float32))
+        raise ValueError(
+            f"model.{method}: NaN or inf at the world's θ ({theta}); expected finite values for "
+            "every θ in its space and every action"
+        )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         m = self.model
@@ -212,7 +213,7 @@ class TaskEnv(EnvBase):
         reward = m.reward(state, target, action, stop, task_theta)
         next_state = m.transition(state, action, task_theta)
         next_state = next_state + self._sample_noise(m.process_cov(state, action, task_theta))
-        self._check_finite(next_state, reward, task_theta)
+        made = {"transition (with process_cov's noise)": next_state, "reward": reward}
         next_step = step + 1
         timeout = next_step >= m.max_steps
         out = {
@@ -227,5 +228,6 @@ class TaskEnv(EnvBase):
             "truncated": timeout & ~stop,
         }
         if m.observation_dim:
-            out["observation"] = self._observe(next_state, task_theta)
+            out["observation"] = made[_OBSERVED] = self._observe(next_state, task_theta)
+        self._check_finite(made, task_theta)
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
