@@ -453,7 +453,8 @@ def _covariance_root(cov: torch.Tensor) -> torch.Tensor:
     eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
     root, info = torch.linalg.cholesky_ex(cov + _JITTER * eye)
     finite = torch.isfinite(cov).all(-1).all(-1)
-    root = torch.where(finite[..., None, None], root, torch.nan)
+    if not finite.all():  # (only then: the backward pass of every other call stays as it was)
+        root = torch.where(finite[..., None, None], root, torch.nan)
     failed = (info > 0) & finite
     if failed.any():
         low = torch.linalg.eigvalsh(cov[failed].detach())[..., 0]
