@@ -35,7 +35,7 @@ from irc_torchrl.algorithms.fit import fit_theta, particle_check, profile_interv
 from irc_torchrl.algorithms.qiteration import QIterationConfig, train_factorised_q
 from irc_torchrl.algorithms.recordings import fit_space
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths
-from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
+from irc_torchrl.algorithms.simulate import first_trial_mask, motor_noise_policy, simulate_agents
 from irc_torchrl.config import Firefly2DConfig
 from irc_torchrl.data.io import read_trials
 from irc_torchrl.data.trajectories import validate_trials
@@ -250,6 +250,32 @@ def test_the_loss_names_a_policy_given_for_its_action_model_and_a_fit_with_nothi
     assert torch.isfinite(loss(held)["log_likelihood"]).all()
     with pytest.raises(ValueError, match="theta_space: every parameter is fixed"):
         fit_theta(loss, held, max_iter=1)
+
+
+def test_arguments_of_the_wrong_kind_are_named(shipped, two_agents):
+    """The trained actor as load_ensemble_policy returns it, given to the action model, was
+    refused as "a network of another task? (KeyError: 'cov')"; a string for the task or the
+    loss failed on an attribute; a rollout's done as integers was cast without a word."""
+    actor, model = shipped
+    held, _ = two_agents
+    low, high = model.action_spec.space.low, model.action_spec.space.high
+    with pytest.raises(TypeError, match=r"^actor: expected a network of belief features .*"
+                       r"TensorDictSequential.* FeaturePolicy\(actor\), or .* "
+                       r"censored_action_model\(actor, model\)$"):  # fmt: skip
+        CensoredGaussianActionModel(actor, low, high)
+    with pytest.raises(ValueError, match="^lapse: expected a real number, got 'x'$"):
+        CensoredGaussianActionModel(torch.nn.Identity(), low, high, lapse="x")
+    with pytest.raises(TypeError, match="^model: expected a TaskModel, got str$"):
+        TaskEnv("firefly2d")
+    with pytest.raises(TypeError, match="^model: expected a TaskModel, got str$"):
+        InverseRationalLoss("firefly2d", censored_action_model(actor, model))
+    with pytest.raises(TypeError, match="^loss: expected an InverseRationalLoss, got str$"):
+        fit_theta("marginal", held)
+    with pytest.raises(TypeError, match=r"^done: expected a bool tensor \[\.\.\., T\], got "):
+        first_trial_mask(torch.tensor([[0, 1, 0]]))
+    from irc_torchrl.modules import censored_action_model as exported
+
+    assert exported is censored_action_model
 
 
 def test_recovered_beliefs_check_theta_nuisance_and_trials(shipped, two_agents):

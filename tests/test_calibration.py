@@ -522,3 +522,17 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
         assert entry["agents"] == agent_intervals(calibrated)
         scores = score_recovery(space, truth, calibrated)["parameters"]
         assert entry["parameters"] == scores
+
+
+def test_a_fit_result_prints_one_line_per_agent(space2d):
+    """The dataclass's repr printed every tensor in full (27,190 characters for 40 agents):
+    one header line, then each agent's θ̂ with its interval, the unconverged marked."""
+    theta_hat = space2d.default(torch.float64).expand(2, -1).clone()
+    result = _result(
+        space2d, theta_hat, 100 * torch.eye(len(space2d.free_names)).expand(2, -1, -1).double()
+    )
+    result.converged[1] = False
+    lines = repr(result).splitlines()
+    assert lines[0] == "FitResult(2 agents, 1 iterations, 1 converged)"
+    assert lines[1].startswith("  agent 0: g_v=1.2 [1.1") and "(not converged)" not in lines[1]
+    assert lines[2].endswith(" (not converged)") and len(lines) == 3

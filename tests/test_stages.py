@@ -151,6 +151,14 @@ def test_the_key_follows_settings_checkpoint_data_and_a_tasks_source(tmp_path):
         stage_key({"seed": 0}, checkpoint, Firefly2DModel(), [data]),
     ]
     assert len({key, *changed}) == 6
+    assert stage_key({"seed": 0}, "firefly2d", None, [data]) == key  # a packaged name
+    # a tensor in the settings by its bytes: torch prints a long one shortened, and a key of
+    # its print read another run's fits as this one's
+    values = torch.arange(2000.0)
+    edited = values.clone()
+    edited[1000] = -5
+    assert str(values) == str(edited)
+    assert stage_key({"t": values}, checkpoint) != stage_key({"t": edited}, checkpoint)
 
 
 def test_a_recoverys_key_reads_the_checkpoints_contents_the_task_and_the_trials(tmp_path):

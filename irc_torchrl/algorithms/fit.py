@@ -80,9 +80,23 @@ GRAD_TRIALS = 4000
 SWITCH = 1.0
 
 
-@dataclass
+@dataclass(repr=False)
 class FitResult:
-    """θ̂ per agent ``[n_agents, d]`` (natural units) with intervals and fit facts."""
+    """θ̂ per agent ``[n_agents, d]`` (natural units) with intervals and fit facts.
+
+    Attributes:
+        theta_hat: θ̂ ``[n_agents, d]`` in natural units, in the order of ``names``.
+        nuisance: the fitted nuisance ``[n_agents, dn]`` (log motor noise, then a lapse's
+            logit where fitted).
+        log_likelihood: the log-likelihood at θ̂ ``[n_agents]``.
+        intervals: standard deviations, 95% intervals and identifiability per parameter.
+        converged: whether each agent's fit met the tolerance ``[n_agents]``.
+        iterations: the iterations the batched fit ran.
+        names: θ's parameter names.
+        information: the observed information at θ̂ ``[n_agents, p, p]``: the Hessian of the
+            negative log-likelihood in the fit's coordinates (unconstrained free θ, then the
+            nuisance).
+    """
 
     theta_hat: torch.Tensor
     nuisance: torch.Tensor
@@ -91,8 +105,6 @@ class FitResult:
     converged: torch.Tensor
     iterations: int
     names: list[str]
-    #: the observed information at θ̂ ``[n_agents, p, p]``: the Hessian of the negative
-    #: log-likelihood in the fit's coordinates (unconstrained free θ, then the nuisance)
     information: torch.Tensor
 
     #: the fields holding one row per agent (besides ``intervals``)
@@ -176,6 +188,22 @@ class FitResult:
                 f"({space.names}, free: {space.free_names})"
             )
 
+    def __repr__(self) -> str:
+        """One line per agent: θ̂ with its interval, whether it converged (the dataclass's
+        repr printed every tensor in full)."""
+        lines = [
+            f"FitResult({len(self.theta_hat)} agents, {self.iterations} iterations, "
+            f"{int(self.converged.sum())} converged)"
+        ]
+        for i in range(len(self.theta_hat)):
+            fit = self.agent(i)
+            values = ", ".join(
+                f"{n}={fit['theta_hat'][n]:.4g} [{fit['ci_low'][n]:.4g}, {fit['ci_high'][n]:.4g}]"
+                for n in self.names
+            )
+            lines.append(f"  agent {i}: {values}{'' if fit['converged'] else ' (not converged)'}")
+        return "\n".join(lines)
+
     def agent(self, i: int) -> dict:
         """One agent's result as plain Python values (the ``summary.json`` entry)."""
 
@@ -213,7 +241,9 @@ def fit_theta(
     progress: Callable[[int, int], None] | None = None,
     workers: int = 1,
 ) -> FitResult:
-    """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``).
+    """Fit θ for every agent in ``trials`` (``[n_agents, n_trials, T]``, or one agent's
+    ``[n_trials, T]``): as many agents as the trials hold, whatever ``loss``'s own
+    ``n_agents`` (its parameters are not read here).
 
     ``n_screen`` candidates (the prior's default and draws from the prior, the same for every
     agent) are scored by likelihood alone; Newton runs from each agent's best ``n_starts`` of
@@ -236,6 +266,8 @@ def fit_theta(
     its own Fisher-scoring samples) and, where a path crosses a cusp of the likelihood, on
     torch's thread count (its sums round differently), not otherwise on the machine.
     """
+    if not isinstance(loss, InverseRationalLoss):
+        raise TypeError(f"loss: expected an InverseRationalLoss, got {type(loss).__name__}")
     if curvature not in CURVATURES:
         raise ValueError(f"curvature: expected one of {CURVATURES}, got {curvature!r}")
     if covariance not in COVARIANCES:

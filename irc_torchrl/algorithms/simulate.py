@@ -104,7 +104,10 @@ def _check_per_agent(policy: TensorDictSequential | None, shape: tuple[int, ...]
 
 def first_trial_mask(done: torch.Tensor) -> torch.Tensor:
     """Steps up to and including the first ``done`` of each row of ``done [..., T]``: a
-    rollout's first trial per env, as held trials' ``mask``."""
+    rollout's first trial per env, as held trials' ``mask`` (a rollout's ``done`` is
+    ``[..., T, 1]``: squeeze it)."""
+    if done.dtype != torch.bool:
+        raise TypeError(f"done: expected a bool tensor [..., T], got {done.dtype}")
     before = torch.cumsum(done.long(), -1) - done.long()
     return before == 0
 

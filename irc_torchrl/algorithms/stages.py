@@ -15,7 +15,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import inspect
-import json
 import re
 import site
 import sys
@@ -33,7 +32,7 @@ from tensordict import TensorDictBase
 
 import irc_torchrl
 from irc_torchrl.algorithms.fit import FitResult
-from irc_torchrl.checkpoint import read_weights
+from irc_torchrl.checkpoint import read_weights, resolve_checkpoint
 from irc_torchrl.config import config_to_dict
 from irc_torchrl.data.files import MARK, write_text, write_torch
 from irc_torchrl.envs.model import TaskModel
@@ -65,12 +64,14 @@ def stage_key(
     model: TaskModel | None = None,
     data: Iterable[TensorDictBase] = (),
 ) -> str:
-    """A digest of what a run's fits depend on: its ``settings`` (JSON-like), the policy's
-    ``checkpoint`` file, the task ``model`` (its class's source and its attributes), the
+    """A digest of what a run's fits depend on: its ``settings`` (in full: a tensor by its
+    bytes, not its shortened print), the policy's ``checkpoint`` (a file, or a packaged
+    checkpoint's name), the task ``model`` (its class's source and its attributes), the
     recorded ``data`` in order, and the versions of the library's code, torch, torchrl and
     tensordict."""
-    digest = hashlib.sha256(json.dumps(settings, sort_keys=True, default=str).encode())
-    digest.update(hashlib.sha256(Path(checkpoint).read_bytes()).digest())
+    digest = hashlib.sha256()
+    _digest_value(digest, "settings", dict(settings), set())
+    digest.update(hashlib.sha256(resolve_checkpoint(checkpoint).read_bytes()).digest())
     if model is not None:
         _digest_model(digest, model)
     _digest_data(digest, data)

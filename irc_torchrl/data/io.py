@@ -78,7 +78,8 @@ def read_trials(
     """Read a recording into held trials ``[n_trials, T]``, refusing anything malformed.
 
     Args:
-        path: ``.npz``, ``.csv``, ``.nwb`` (needs ``pynwb``), or a TensorDict memmap folder.
+        path: ``.npz``, ``.csv``, ``.csv.gz``, ``.nwb`` (needs ``pynwb``), or a TensorDict
+            memmap folder.
         model: the task; its names and units define the columns (see the schema).
         time_column, trial_column: the names of the time (s) and trial columns.
         units: ``{column: unit}`` where the recording differs from the model's units,

@@ -8,7 +8,7 @@ from irc_torchrl.envs.belief import (
     ekf_step,
     ekf_update,
 )
-from irc_torchrl.envs.firefly1d import Firefly1DEnv, Firefly1DModel
+from irc_torchrl.envs.firefly1d import Firefly1DEnv, Firefly1DModel, firefly1d_theta_space
 from irc_torchrl.envs.firefly2d import (
     Firefly2DEnv,
     Firefly2DModel,
@@ -36,6 +36,7 @@ __all__ = [
     "ekf_predict",
     "ekf_step",
     "ekf_update",
+    "firefly1d_theta_space",
     "firefly2d_theta_space",
     "register_gym",
     "seed_paper_theta_space",

@@ -37,6 +37,8 @@ def check_model(model: TaskModel) -> None:
     """Refuse a task whose methods return the wrong shape, dtype or values at the default θ,
     or whose outputs move with a θ parameter autograd cannot see (every method must be
     differentiable in θ: the inverse backpropagates through them)."""
+    if not isinstance(model, TaskModel):
+        raise TypeError(f"model: expected a TaskModel, got {type(model).__name__}")
     check_action_spec(model)
     # on the CPU, where θ's default lives, and with gradients even where the caller has none
     with torch.device("cpu"), torch.inference_mode(False), torch.enable_grad():

@@ -1,6 +1,11 @@
 """Policies, value networks and action likelihoods (mirrors ``torchrl.modules``)."""
 
-from irc_torchrl.modules.actor_critic import FeaturePolicy, make_actor, make_critic
+from irc_torchrl.modules.actor_critic import (
+    FeaturePolicy,
+    censored_action_model,
+    make_actor,
+    make_critic,
+)
 from irc_torchrl.modules.factorised_q import FactorisedQ
 from irc_torchrl.modules.lapse import Lapse
 from irc_torchrl.modules.likelihood import BoltzmannActionModel, CensoredGaussianActionModel
@@ -13,6 +18,7 @@ __all__ = [
     "FactorisedQ",
     "FeaturePolicy",
     "Lapse",
+    "censored_action_model",
     "make_actor",
     "make_critic",
 ]

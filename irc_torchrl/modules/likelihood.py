@@ -14,9 +14,10 @@ from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from irc_torchrl.checks import positive_number
+from irc_torchrl.checks import positive_number, real
 from irc_torchrl.envs.belief import symmetrise
 from irc_torchrl.envs.model import bounded_box
 from irc_torchrl.modules.lapse import lapse_draw
@@ -207,6 +208,14 @@ class CensoredGaussianActionModel(nn.Module):
         fit_lapse: bool = False,
     ) -> None:
         super().__init__()
+        if isinstance(actor, TensorDictModuleBase):
+            raise TypeError(
+                f"actor: expected a network of belief features (a tensor in, the action out), "
+                f"got a TensorDict module ({type(actor).__name__}, as load_ensemble_policy "
+                "returns): wrap it, FeaturePolicy(actor), or build the whole action model "
+                "with censored_action_model(actor, model)"
+            )
+        lapse = real("lapse", lapse)
         if not 0 <= lapse < 1:
             raise ValueError(f"lapse: expected a probability in [0, 1), got {lapse}")
         if not isinstance(fit_lapse, bool):

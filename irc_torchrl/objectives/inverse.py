@@ -187,7 +187,9 @@ class InverseRationalLoss(LossModule):
         ``[n_agents, n_trials]`` is returned (what per-trial scores are made of). Neither θ
         nor the trials are checked here (the fit calls this for every row of every pass, and
         one row's NaN must not stop the others): :meth:`forward` and ``fit_theta`` check
-        theirs, and a θ outside its space extrapolates the networks.
+        theirs, and a θ outside its space extrapolates the networks. The filter runs in θ's
+        dtype: pass float64, as ``fit_theta`` does (float32 moved one agent's value by 1.65
+        nats).
         """
         total, _ = self.log_likelihood_and_draws(theta, nuisance, trials)
         return total if per_trial else total.sum(1)
