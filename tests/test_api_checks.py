@@ -125,6 +125,10 @@ def test_a_particle_check_takes_one_theta_per_agent_and_runs_in_float64(shipped,
     single = particle_check(loss, held, theta.float(), nuisance.float(), n_particles=10)
     for key, value in exact.items():
         assert value.dtype == single[key].dtype and torch.equal(value, single[key]), key
+    start = loss.action_model.nuisance_init.expand(2, -1)  # None: as its siblings read it
+    default = particle_check(loss, held, theta, None, n_particles=10)
+    given = particle_check(loss, held, theta, start, n_particles=10)
+    assert all(torch.equal(default[key], given[key]) for key in given)
 
 
 def test_inverse_loss_and_fit_refuse_what_they_cannot_fit(shipped, two_agents):

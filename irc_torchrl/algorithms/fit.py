@@ -807,11 +807,12 @@ def particle_check(
     loss: InverseRationalLoss,
     trials: TensorDictBase,
     theta: torch.Tensor,
-    nuisance: torch.Tensor,
+    nuisance: torch.Tensor | None = None,
     n_particles: int = 1000,
     seed: int = 0,
 ) -> dict[str, torch.Tensor]:
-    """How far the loss's likelihood is from the one it approximates, at θ, per agent ``[A]``.
+    """How far the loss's likelihood is from the one it approximates, at θ (and ``nuisance``;
+    ``None``: the action model's initial one), per agent ``[A]``.
 
     ``particle_log_likelihood`` is a particle filter's estimate of the likelihood with the
     agent's observations integrated out (:meth:`InverseRationalLoss.particle_log_likelihood`),
@@ -824,8 +825,9 @@ def particle_check(
     the intervals are wrong.
     Both run in float64 (a float32 filter moves the gap by tens of nats).
     """
-    trials, _, _ = _checked_point(loss, trials, theta, nuisance, 1)
-    theta, nuisance = (x.detach().double().to(trials.device) for x in (theta, nuisance))
+    trials, theta_free, point = _checked_point(loss, trials, theta, nuisance, 1)
+    nuisance = point[:, theta_free.shape[-1] :]
+    theta = theta.detach().double().to(trials.device)
     with torch.no_grad():
         approximate = loss.log_likelihood(theta, nuisance, trials)
     particle, ess = loss.particle_log_likelihood(theta, nuisance, trials, n_particles, seed)

@@ -1,5 +1,6 @@
-"""Atomic file writes (a reader never sees a half-written file), and what a rerun into a run
-folder reads of the earlier run there to remove what it would leave stale."""
+"""Atomic file writes (a reader never sees a half-written file), a run folder held for one run
+at a time (a killed run's temporaries removed by the next), and what a rerun into a run folder
+reads of the earlier run there to remove what it would leave stale."""
 
 from __future__ import annotations
 
@@ -184,6 +185,7 @@ def check_space(folder: str | Path, nbytes: int, what: str) -> None:
 
 
 def _megabytes(nbytes: int) -> str:
+    """A size for a message, in MB to 3 significant digits."""
     return f"{nbytes / 1e6:.3g} MB"
 
 

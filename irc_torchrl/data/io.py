@@ -243,6 +243,7 @@ def _suffixed(path: Path) -> bool:
 
 
 def _gzipped(path: Path) -> bool:
+    """Whether ``path`` names a gzip-compressed file (a temporary keeps the extension)."""
     return path.name.endswith(".gz")
 
 
