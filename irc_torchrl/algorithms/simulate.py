@@ -129,6 +129,13 @@ def simulate_agents(
         task_theta: the world's θ, ``[d]`` or ``[n_agents, d]``; ``None``: each agent's own.
         progress: called as ``progress(steps_done, max_steps)`` after each time step (all
             trials advance together).
+
+    Returns:
+        Held trials ``[n_agents, n_trials, max_steps]`` on θ's device: ``state``, ``action``,
+        ``target``, ``task_theta`` (the world's θ), ``theta`` (the agent's), ``belief``
+        (``mean`` and ``cov``: what the agent believed before each action, which the inverse
+        recovers) and ``mask`` (each trial's steps, up to and including its stop; the steps
+        after it are not read).
     """
     space = model.theta_space
     theta = space.validate(theta, "theta")

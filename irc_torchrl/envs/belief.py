@@ -47,7 +47,9 @@ def ekf_predict(
     action: torch.Tensor,
     theta: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Propagate the belief through the transition: ``μ' = f(μ, a)``, ``Σ' = F Σ Fᵀ + Q``."""
+    """Propagate the belief through the transition: ``μ' = f(μ, a)``, ``Σ' = F Σ Fᵀ + Q``;
+    ``mean [*B, ds]``, ``cov [*B, ds, ds]``, ``action [*B, da]`` (``[*B]`` discrete),
+    ``theta [*B, d]``."""
     jac = model.transition_jacobian(mean, action, theta)
     mean_next = model.transition(mean, action, theta)
     cov_next = jac @ cov @ jac.transpose(-1, -2) + model.process_cov(mean, action, theta)
@@ -75,7 +77,8 @@ def ekf_update(
     observation: torch.Tensor,
     theta: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Condition the belief on an observation, with the Joseph form so ``Σ`` stays PD."""
+    """Condition the belief on an ``observation [*B, do]``, with the Joseph form so ``Σ``
+    stays PD (shapes as :func:`ekf_predict`'s)."""
     if model.observation_dim == 0:
         return mean, cov
     gain, jac, noise = ekf_gain(model, mean, cov, theta)
@@ -109,7 +112,8 @@ def ekf_step(
     observation: torch.Tensor | None,
     theta: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One filter step: predict through the action, then update on the next observation."""
+    """One filter step: predict through the action, then update on the next observation
+    (``None``: predict only); the belief ``(mean [*B, ds], cov [*B, ds, ds])``."""
     mean, cov = ekf_predict(model, mean, cov, action, theta)
     if observation is None:
         return mean, cov
