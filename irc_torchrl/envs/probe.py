@@ -307,16 +307,17 @@ def _shifted(theta: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
 
 
 def _probe_action(model: TaskModel, dtype: torch.dtype) -> torch.Tensor:
-    """An action of every batch element, inside the spec and off its centre (a gain times a
-    zero action would hide the gain): index 1 of a discrete action, three quarters of the way
-    up a bounded box, 0.5 where unbounded."""
+    """Two actions, one per batch element, inside the spec and off its centre (a gain times a
+    zero action would hide the gain): indices 1 and the last of a discrete action; three
+    quarters and a quarter of the way up a bounded box; 0.5 and -0.5 where unbounded."""
     spec = model.action_spec
     if isinstance(spec, Categorical):
-        return torch.full((_BATCH,), min(1, spec.n - 1), dtype=spec.dtype)
+        return torch.tensor([min(1, spec.n - 1), spec.n - 1], dtype=spec.dtype)
     low, high = spec.space.low.to(dtype), spec.space.high.to(dtype)
     bounded = torch.isfinite(high - low) & (high - low < torch.finfo(torch.float32).max)
-    action = torch.where(bounded, low + 0.75 * (high - low), torch.full_like(low, 0.5))
-    return action.expand(_BATCH, -1).to(spec.dtype)
+    up = torch.tensor([[0.75], [0.25]], dtype=dtype)
+    action = torch.where(bounded, low + up * (high - low), 2 * up - 1)
+    return action.to(spec.dtype)
 
 
 def _shape_of(out: object) -> str:
