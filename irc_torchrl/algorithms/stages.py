@@ -34,7 +34,7 @@ import irc_torchrl
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.checkpoint import read_weights, resolve_checkpoint
 from irc_torchrl.config import config_to_dict
-from irc_torchrl.data.files import MARK, write_text, write_torch
+from irc_torchrl.data.files import remove_temporaries, write_text, write_torch
 from irc_torchrl.envs.model import TaskModel
 
 __all__ = ["AFTER_FITS", "Stages", "fit_settings", "format_resumed", "stage_key", "staged_by"]
@@ -322,8 +322,7 @@ class Stages:
         for path in self.folder.glob("*.pt"):
             if self._load(path) is None:
                 path.unlink()
-        for path in self.folder.glob(f".*.pt.*{MARK}"):  # atomic_path's temporaries
-            path.unlink()
+        remove_temporaries(self.folder)
 
     def summarise(self, summary: dict) -> None:
         """Name the stages read (``summary["resumed"]``) in a resuming run's summary."""

@@ -29,6 +29,7 @@ __all__ = [
     "earlier_summary",
     "held",
     "remove_stale",
+    "remove_temporaries",
     "staged",
     "write_json",
     "write_npz",
@@ -116,7 +117,7 @@ def held(folder: str | Path, field: str = "--out") -> Iterator[Path]:
     try:
         if _lock(fd, folder, field):
             for parent in (folder, folder / "stages"):
-                _remove_temporaries(parent)
+                remove_temporaries(parent)
         yield folder
     finally:
         os.close(fd)  # releases the lock
@@ -145,9 +146,10 @@ def _lock(fd: int, folder: Path, field: str) -> bool:
     return True
 
 
-def _remove_temporaries(folder: Path) -> None:
-    """Remove irc's temporaries in ``folder`` (none where it is not a folder)."""
-    if not folder.is_dir() or folder.is_symlink():
+def remove_temporaries(folder: Path) -> None:
+    """Remove irc's temporaries in ``folder`` (none where it is not a folder): those of a
+    killed run, where no run of this folder is writing."""
+    if not folder.is_dir():
         return
     for path in folder.iterdir():
         if not _TEMPORARY.fullmatch(path.name):

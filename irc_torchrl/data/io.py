@@ -242,11 +242,6 @@ def _suffixed(path: Path) -> bool:
     return recording_suffix(path) in SUFFIXES
 
 
-def _gzipped(path: Path) -> bool:
-    """Whether ``path`` names a gzip-compressed file (a temporary keeps the extension)."""
-    return path.name.endswith(".gz")
-
-
 def _used_columns(model: TaskModel, time_column: str, trial_column: str) -> Callable[[str], bool]:
     """Whether a column is read: the schema's required ones and ``theta.<name>``; readers
     leave the others unread (an empty placeholder keeps their name for misspelling hints)."""
@@ -284,7 +279,7 @@ def _write_npz(columns: Columns, tmp: Path, model: TaskModel) -> None:
 
 def _read_csv(path: Path, model: TaskModel, time_column: str, trial_column: str) -> Columns:
     try:
-        opened = gzip.open if _gzipped(path) else open
+        opened = gzip.open if recording_suffix(path) == ".csv.gz" else open
         with opened(path, "rt", newline="", encoding="utf-8-sig") as f:  # -sig: Excel's BOM
             reader = csv.reader(f)  # with each row's line in the file, blank lines skipped
             read = [(reader.line_num, row) for row in reader if row]
@@ -348,7 +343,8 @@ def _write_csv(columns: Columns, tmp: Path, model: TaskModel) -> None:
     writer.writerows(zip(*cells, strict=True))
     data = text.getvalue().encode()
     # compressed without a time stamp or a name: the same trials give the same bytes
-    tmp.write_bytes(gzip.compress(data, mtime=0) if _gzipped(tmp) else data)
+    gzipped = recording_suffix(tmp) == ".csv.gz"  # a temporary keeps the extension
+    tmp.write_bytes(gzip.compress(data, mtime=0) if gzipped else data)
 
 
 def load_memmap(path: str | Path) -> TensorDict:
