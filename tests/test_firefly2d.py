@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
 import math
+import pydoc
 
 import pytest
 import torch
@@ -20,7 +22,9 @@ from irc_torchrl.envs import (
     firefly2d_theta_space,
     seed_paper_theta_space,
 )
+from irc_torchrl.envs.firefly1d import Firefly1DEnv
 from irc_torchrl.envs.firefly2d import NOISE_FLOOR, disc_probability
+from irc_torchrl.envs.task_env import TaskEnv
 from irc_torchrl.theta import ThetaSpace
 
 torch.set_num_threads(1)
@@ -68,6 +72,18 @@ def test_check_env_specs(batch_size, with_filter):
     assert td["state"].shape == (*batch_size, 5, 5)
     if with_filter:
         assert td["next", "belief", "cov"].shape == (*batch_size, 5, 5, 5)
+
+
+def test_envs_show_their_constructors_arguments_not_the_metaclass_catch_all():
+    class Extended(Firefly2DEnv):
+        def __init__(self, horizon: int = 3, **kwargs) -> None:
+            super().__init__(**kwargs)
+
+    names = ["model", "batch_size", "theta", "task_theta", "device", "seed"]
+    for env in (TaskEnv, Firefly1DEnv, Firefly2DEnv):
+        assert list(inspect.signature(env).parameters) == names
+    assert list(inspect.signature(Extended).parameters) == ["horizon", "kwargs"]
+    assert "Firefly2DEnv(model: " in pydoc.plain(pydoc.render_doc(Firefly2DEnv))  # help()
 
 
 def test_initial_belief_knows_the_start_pose_with_a_pd_floor():

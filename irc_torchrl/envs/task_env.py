@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 from typing import Any
 
@@ -71,6 +72,10 @@ class TaskEnv(EnvBase):
         self._make_specs()
         self.rng = torch.Generator(device=self.device if self.device is not None else "cpu")
         self.set_seed(None if seed is None else check_seed("seed", seed))
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.__signature__ = _constructor_signature(cls)
 
     def _check_theta(self, theta: torch.Tensor, field: str) -> torch.Tensor:
         theta = torch.as_tensor(theta, dtype=torch.float32, device=self.device)
@@ -231,3 +236,14 @@ class TaskEnv(EnvBase):
             out["observation"] = made[_OBSERVED] = self._observe(next_state, task_theta)
         self._check_finite(made, task_theta)
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+
+def _constructor_signature(cls: type[TaskEnv]) -> inspect.Signature:
+    """The constructor's arguments, for ``help`` and ``inspect``: TorchRL's env metaclass
+    would show every env as ``(*args, **kwargs)``."""
+    signature = inspect.signature(cls.__init__)
+    parameters = list(signature.parameters.values())[1:]
+    return signature.replace(parameters=parameters, return_annotation=inspect.Signature.empty)
+
+
+TaskEnv.__signature__ = _constructor_signature(TaskEnv)
