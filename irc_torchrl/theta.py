@@ -272,6 +272,7 @@ class ThetaSpace:
     # --- coordinates -----------------------------------------------------------------------
     def to_unconstrained(self, theta: torch.Tensor) -> torch.Tensor:
         """Natural units to unconstrained reals (a scaled logit per parameter)."""
+        self._check_shape(theta, "theta")
         low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
         eps = torch.finfo(theta.dtype).eps ** 0.5
         p = ((theta - low) / (high - low)).clamp(eps, 1 - eps)
@@ -280,17 +281,20 @@ class ThetaSpace:
     def from_unconstrained(self, u: torch.Tensor) -> torch.Tensor:
         """Unconstrained reals to natural units; from ±40 on (an interval's end with no bound
         from the data) the bound itself, where the logistic is within 4e-18 of it."""
+        self._check_shape(u, "theta (unconstrained)")
         low, high = self.low(u.dtype, u.device), self.high(u.dtype, u.device)
         natural = low + (high - low) * torch.sigmoid(u)
         return torch.where(u <= -_ENDS, low, torch.where(u >= _ENDS, high, natural))
 
     def normalise(self, theta: torch.Tensor) -> torch.Tensor:
         """Natural units to the box [-1, 1], the form networks read."""
+        self._check_shape(theta, "theta")
         low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
         return 2 * (theta - low) / (high - low) - 1
 
     def denormalise(self, z: torch.Tensor) -> torch.Tensor:
         """The box [-1, 1] to natural units."""
+        self._check_shape(z, "theta (normalised)")
         low, high = self.low(z.dtype, z.device), self.high(z.dtype, z.device)
         return low + (z + 1) * (high - low) / 2
 

@@ -243,6 +243,25 @@ def test_to_dict_refuses_a_last_dimension_other_than_dim():
             space.to_dict(theta)
 
 
+@pytest.mark.parametrize(
+    "method, field",
+    [
+        ("normalise", "theta"),
+        ("denormalise", r"theta \(normalised\)"),
+        ("to_unconstrained", "theta"),
+        ("from_unconstrained", r"theta \(unconstrained\)"),
+    ],
+)
+def test_coordinate_maps_refuse_a_last_dimension_other_than_dim(method, field):
+    """A [n, 2] θ of a 3-parameter space broadcast against the bounds (a torch size error) or,
+    as [n, 1], came back as three made-up parameters."""
+    space = make_space()
+    for theta in (torch.zeros(4, 2), torch.zeros(4, 1), torch.tensor(0.5)):
+        with pytest.raises(ValueError, match=rf"^{field}: expected shape \[\.\.\., 3\]"):
+            getattr(space, method)(theta)
+    assert getattr(space, method)(torch.zeros(4, 3)).shape == (4, 3)
+
+
 @pytest.mark.parametrize("value", ["1.3", True, [1.3], None, torch.tensor([1.0, 1.2])])
 def test_from_dict_refuses_values_that_are_not_real_numbers(value):
     with pytest.raises(ValueError, match="my_field: gain: expected a real number"):
