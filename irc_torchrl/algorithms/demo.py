@@ -48,7 +48,8 @@ def dp_comparison(
 
 def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = True) -> dict:
     """Run the 1D demo into ``out``: ``config.yaml``, ``summary.json``, three figures and
-    ``figures.npz`` (what two of them show)."""
+    ``figures.npz`` (what two of them show); returns the summary. ``config`` holds every
+    setting (its seed, device and threads included); ``show_progress``: progress bars."""
     config.validate()
     with torch_settings(config.threads, config.flush_denormal):
         return _run_demo(config, Path(out), show_progress)

@@ -30,15 +30,27 @@ __all__ = ["QIterationConfig", "make_q_policy", "train_factorised_q", "FittedQIt
 class QIterationConfig:
     """Settings of :func:`train_factorised_q`."""
 
+    #: parallel environments, each with its own θ drawn from the prior per trial
     n_envs: int = 512
+    #: rounds of collection, each followed by a fit on all the data so far; the first round
+    #: acts uniformly at random, the later ones ε-greedily on the last fit's Q
     rounds: int = 4
+    #: batched env steps per round (trials end and restart within them)
     steps_per_round: int = 60
+    #: Bellman backups per fit, each a least-squares regression from Q = 0
     sweeps: int = 40
+    #: discount of the backups (1: undiscounted, as the task's trials end)
     gamma: float = 1.0
+    #: ridge penalty per sample of each action's regression (keeps a design of few samples
+    #: invertible)
     ridge: float = 1e-4
+    #: probability of a random action in the rounds after the first
     epsilon: float = 0.3
+    #: sizes of the random bases over the belief features (φ) and over normalised θ (ψ),
+    #: each with its constant; Q has ``n_actions × n_belief_basis × n_theta_basis`` weights
     n_belief_basis: int = 64
     n_theta_basis: int = 16
+    #: spread of the bases' random input weights (larger: finer detail, less smoothing)
     belief_scale: float = 3.0
     theta_scale: float = 1.5
 
@@ -136,7 +148,12 @@ def train_factorised_q(
     device: torch.device | str = "cpu",
 ) -> FactorisedQ:
     """Learn ``Q(b, a, θ)`` over the θ prior (the paper's Algorithm 1 with a factorised basis)
-    on ``device``, where the returned Q lives."""
+    on ``device``, where the returned Q lives.
+
+    ``config``: the settings (``None``: :class:`QIterationConfig`'s defaults); ``seed`` fixes
+    the bases, the environments and the exploration, so the same seed gives the same Q;
+    ``progress(done, total)`` is called after each round.
+    """
     config = (config if config is not None else QIterationConfig()).validate()
     device = resolve_device(str(device))
     # ε-greedy draws from the global generator, in the default dtype
