@@ -43,8 +43,10 @@ def brute_force(
         for t, a in enumerate(seq):
             if a == STOP:
                 sd = math.sqrt(model.initial_variance + t * s0sq)
-                p = 0.5 * (math.erf((r - offset) / (sd * math.sqrt(2)))
-                           - math.erf((-r - offset) / (sd * math.sqrt(2))))
+                p = 0.5 * (
+                    math.erf((r - offset) / (sd * math.sqrt(2)))
+                    - math.erf((-r - offset) / (sd * math.sqrt(2)))
+                )
                 total += gamma**t * model.reward_value * p
                 break
             total -= gamma**t * c
@@ -57,20 +59,23 @@ def test_dp_matches_brute_force_on_tiny_horizon():
     model = Firefly1DModel(max_steps=4)
     space = model.theta_space.free()
     model.theta_space = space
-    thetas = torch.stack([
-        theta_row(space, 1.0, math.log(0.3)),
-        theta_row(space, 0.6, 0.0, radius=0.5, cost=0.05),
-        theta_row(space, 1.45, math.log(0.05), radius=1.7, cost=1.0),
-        theta_row(space, 0.83, -0.4, radius=0.9, cost=0.2),
-    ])
+    thetas = torch.stack(
+        [
+            theta_row(space, 1.0, math.log(0.3)),
+            theta_row(space, 0.6, 0.0, radius=0.5, cost=0.05),
+            theta_row(space, 1.45, math.log(0.05), radius=1.7, cost=1.0),
+            theta_row(space, 0.83, -0.4, radius=0.9, cost=0.2),
+        ]
+    )
     starts = torch.tensor([-4.3, -2.2, -1.0, 0.0, 0.7, 1.6, 2.9, 5.5], dtype=torch.float64)
     q = optimal_values(model, thetas, starts)
     assert q.shape == (4, 8, 3) and q.dtype == torch.float64
     for i in range(4):
         for j in range(8):
             expected = brute_force(model, thetas[i], float(starts[j]))
-            torch.testing.assert_close(q[i, j], torch.tensor(expected, dtype=torch.float64),
-                                       atol=1e-9, rtol=0)
+            torch.testing.assert_close(
+                q[i, j], torch.tensor(expected, dtype=torch.float64), atol=1e-9, rtol=0
+            )
 
 
 def test_dp_facts():
@@ -89,19 +94,28 @@ def test_dp_facts():
     assert (value >= -1e-12).all() and (value <= 10 + 1e-9).all()
     torch.testing.assert_close(value, value.flip(-1), atol=1e-9, rtol=0)
     # a far target under large process noise and small gain is not worth the walk
-    far = optimal_values(model, theta_row(space, 0.5, 0.0).unsqueeze(0),
-                         torch.tensor([-12.0, 12.0], dtype=torch.float64))
-    torch.testing.assert_close(far.max(-1).values, torch.zeros(1, 2, dtype=torch.float64),
-                               atol=1e-9, rtol=0)
+    far = optimal_values(
+        model,
+        theta_row(space, 0.5, 0.0).unsqueeze(0),
+        torch.tensor([-12.0, 12.0], dtype=torch.float64),
+    )
+    torch.testing.assert_close(
+        far.max(-1).values, torch.zeros(1, 2, dtype=torch.float64), atol=1e-9, rtol=0
+    )
     assert (far.argmax(-1) == STOP).all()
     # but close by, with little noise, walking to it pays: move towards the target first
-    near = optimal_values(model, theta_row(space, 1.0, -2.9).unsqueeze(0),
-                          torch.tensor([3.0], dtype=torch.float64))
+    near = optimal_values(
+        model, theta_row(space, 1.0, -2.9).unsqueeze(0), torch.tensor([3.0], dtype=torch.float64)
+    )
     assert near[0, 0].argmax() == LEFT and near[0, 0].max() > 8.5
     # a higher move cost never raises the value
     free_model = Firefly1DModel(theta_space=space.free())
-    costly = [optimal_values(free_model, theta_row(space, 1.0, -1.2, cost=c).unsqueeze(0), starts)
-              .max(-1).values for c in (0.05, 0.3, 1.0)]
+    costly = [
+        optimal_values(free_model, theta_row(space, 1.0, -1.2, cost=c).unsqueeze(0), starts)
+        .max(-1)
+        .values
+        for c in (0.05, 0.3, 1.0)
+    ]
     assert (costly[0] >= costly[1] - 1e-12).all() and (costly[1] >= costly[2] - 1e-12).all()
     assert (costly[0] > costly[2] + 0.1).any()
 
@@ -127,39 +141,66 @@ def test_learned_greedy_policy_is_near_optimal(firefly1d_model, trained_q):
     assert ratio >= 0.95, f"greedy/optimal = {ratio:.4f}"
 
 
-def test_greedy_returns_of_the_dp_policy_equal_the_optimum():
-    """``greedy_returns`` is exact: the greedy policy of the exact Q earns the DP value."""
+class DPQ(torch.nn.Module):
+    """Q from the features by re-running DP at the decoded belief (time-aware), discounted
+    by ``gamma``: the exact Q of ``model``."""
+
+    def __init__(self, model: Firefly1DModel, gamma: float = 1.0) -> None:
+        super().__init__()
+        self.model, self.gamma = model, gamma
+
+    def forward(self, features):
+        model, space = self.model, self.model.theta_space
+        rel = features[..., 0].double() * model.target_range
+        step = torch.round(features[..., 3].double() * model.max_steps).long()
+        theta_f = space.denormalise(features[..., 5:].double())
+        out = torch.empty(*features.shape[:-1], 3, dtype=torch.float64)
+        for idx in itertools.product(*(range(s) for s in features.shape[:-1])):
+            sub = Firefly1DModel(max_steps=model.max_steps - int(step[idx]))
+            # the variance already accumulated is folded into the initial variance
+            sub.initial_variance = model.initial_variance + int(step[idx]) * float(
+                theta_f[idx][1].exp() ** 2
+            )
+            theta = theta_f[idx].unsqueeze(0).float()
+            out[idx] = optimal_values(sub, theta, rel[idx].reshape(1), self.gamma)[0, 0]
+        return out
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.7])
+def test_greedy_returns_of_the_dp_policy_equal_the_optimum(gamma):
+    """``greedy_returns`` is exact: the greedy policy of the exact Q earns the DP value, each
+    reward discounted as the Q was."""
     model = Firefly1DModel(max_steps=6)
     space = model.theta_space
     theta = torch.stack([theta_row(space, 1.0, -1.5), theta_row(space, 0.7, -0.5)])
     starts = torch.tensor([-3.0, 0.0, 2.2], dtype=torch.float64)
-
-    class DPQ(torch.nn.Module):
-        """Q from the features by re-running DP at the decoded belief (time-aware)."""
-
-        def forward(self, features):
-            rel = features[..., 0].double() * model.target_range
-            step = torch.round(features[..., 3].double() * model.max_steps).long()
-            theta_f = space.denormalise(features[..., 5:].double())
-            out = torch.empty(*features.shape[:-1], 3, dtype=torch.float64)
-            for idx in itertools.product(*(range(s) for s in features.shape[:-1])):
-                sub = Firefly1DModel(max_steps=model.max_steps - int(step[idx]))
-                # the variance already accumulated is folded into the initial variance
-                sub.initial_variance = model.initial_variance + int(step[idx]) * float(
-                    theta_f[idx][1].exp() ** 2)
-                out[idx] = optimal_values(sub, theta_f[idx].unsqueeze(0).float(),
-                                          rel[idx].reshape(1))[0, 0]
-            return out
-
-    greedy = greedy_returns(model, DPQ(), theta, starts)
-    optimal = optimal_values(model, theta, starts).max(-1).values
+    greedy = greedy_returns(model, DPQ(model, gamma), theta, starts, gamma)
+    optimal = optimal_values(model, theta, starts, gamma).max(-1).values
     torch.testing.assert_close(greedy, optimal, atol=1e-4, rtol=1e-5)
+
+
+def test_the_demos_dp_comparison_uses_the_discount_the_q_was_trained_with():
+    """The exact γ = 0.7 policy scored against the undiscounted optimum came out at 0.968 of
+    it; under its own discount it is the optimum."""
+    model = Firefly1DModel(max_steps=6)
+    _, _, optimal, learned = dp_comparison(model, DPQ(model, 0.7), n_grid=2, n_starts=5, gamma=0.7)
+    torch.testing.assert_close(learned, optimal, atol=1e-4, rtol=1e-5)
+    _, _, optimal, learned = dp_comparison(model, DPQ(model, 0.7), n_grid=2, n_starts=5)
+    assert learned.mean() / optimal.mean() < 0.99
 
 
 def test_fitted_q_iteration_recovers_a_representable_q():
     """One sweep with γ = 0 regresses the reward: a reward linear in φ⊗ψ is recovered exactly."""
-    q = FactorisedQ(belief_dim=3, theta_dim=2, n_actions=3, n_belief_basis=6, n_theta_basis=3,
-                    belief_scale=1.0, theta_scale=1.0, seed=1)
+    q = FactorisedQ(
+        belief_dim=3,
+        theta_dim=2,
+        n_actions=3,
+        n_belief_basis=6,
+        n_theta_basis=3,
+        belief_scale=1.0,
+        theta_scale=1.0,
+        seed=1,
+    )
     g = torch.Generator().manual_seed(0)
     n = 3000
     features = 2 * torch.rand(n, 5, generator=g, dtype=torch.float64) - 1
@@ -168,11 +209,16 @@ def test_fitted_q_iteration_recovers_a_representable_q():
     design = q.design(features)
     reward = (design * w_true.flatten(1)[action]).sum(-1)
     solver = FittedQIteration(q, gamma=0.0, ridge=0.0)
-    solver.add(TensorDict(
-        features=features, action=action, reward=reward.unsqueeze(-1),
-        next_features=features.flip(0), terminated=torch.zeros(n, 1, dtype=torch.bool),
-        batch_size=[n],
-    ))
+    solver.add(
+        TensorDict(
+            features=features,
+            action=action,
+            reward=reward.unsqueeze(-1),
+            next_features=features.flip(0),
+            terminated=torch.zeros(n, 1, dtype=torch.bool),
+            batch_size=[n],
+        )
+    )
     solver.fit(sweeps=1)
     torch.testing.assert_close(q.weight.data.double(), w_true, atol=1e-6, rtol=0)
     q_pred = q(features).gather(-1, action.unsqueeze(-1)).squeeze(-1)
@@ -186,8 +232,16 @@ def test_fitted_q_iteration_bellman_backup():
     features (the same for every action), so the Bellman fixed point is Q = 2 r for all actions.
     Many sweeps converge to it geometrically (60 sweeps: error ≤ 2^-60·|Q|).
     """
-    q = FactorisedQ(belief_dim=2, theta_dim=1, n_actions=3, n_belief_basis=5, n_theta_basis=3,
-                    belief_scale=1.0, theta_scale=1.0, seed=2)
+    q = FactorisedQ(
+        belief_dim=2,
+        theta_dim=1,
+        n_actions=3,
+        n_belief_basis=5,
+        n_theta_basis=3,
+        belief_scale=1.0,
+        theta_scale=1.0,
+        seed=2,
+    )
     g = torch.Generator().manual_seed(1)
     n = 3000
     features = 2 * torch.rand(n, 3, generator=g, dtype=torch.float64) - 1
@@ -195,13 +249,20 @@ def test_fitted_q_iteration_bellman_backup():
     w = torch.randn(5 * 3, generator=g, dtype=torch.float64)
     reward = q.design(features) @ w
     solver = FittedQIteration(q, gamma=0.5, ridge=0.0)
-    solver.add(TensorDict(
-        features=features, action=action, reward=reward, next_features=features,
-        terminated=torch.zeros(n, dtype=torch.bool), batch_size=[n],
-    ))
+    solver.add(
+        TensorDict(
+            features=features,
+            action=action,
+            reward=reward,
+            next_features=features,
+            terminated=torch.zeros(n, dtype=torch.bool),
+            batch_size=[n],
+        )
+    )
     solver.fit(sweeps=60)
-    torch.testing.assert_close(q(features), (2 * reward).unsqueeze(-1).expand(n, 3),
-                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        q(features), (2 * reward).unsqueeze(-1).expand(n, 3), atol=1e-6, rtol=0
+    )
 
 
 def test_training_is_deterministic_for_a_seed():

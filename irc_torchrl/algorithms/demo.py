@@ -29,9 +29,14 @@ __all__ = ["run_demo", "dp_comparison", "format_summary"]
 
 
 def dp_comparison(
-    model: Firefly1DModel, q_network: torch.nn.Module, n_grid: int = 5, n_starts: int = 49
+    model: Firefly1DModel,
+    q_network: torch.nn.Module,
+    n_grid: int = 5,
+    n_starts: int = 49,
+    gamma: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Learned greedy return against the DP optimum on a θ grid over the free parameters."""
+    """Learned greedy return against the DP optimum on a θ grid over the free parameters,
+    both under the discount ``gamma`` the Q was trained with."""
     space = model.theta_space
     axes = [
         torch.linspace(space[n].low, space[n].high, n_grid, dtype=torch.float64)
@@ -41,8 +46,8 @@ def dp_comparison(
     theta = space.default(torch.float64).expand(grid.shape[0], -1).clone()
     theta[:, space.free_mask] = grid
     starts = torch.linspace(-model.target_range, model.target_range, n_starts, dtype=torch.float64)
-    optimal = optimal_values(model, theta, starts).max(-1).values
-    learned = greedy_returns(model, q_network, theta, starts)
+    optimal = optimal_values(model, theta, starts, gamma).max(-1).values
+    learned = greedy_returns(model, q_network, theta, starts, gamma)
     return theta, starts, optimal, learned
 
 
@@ -69,7 +74,9 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     train_s = time.perf_counter() - start
 
     on_cpu = copy.deepcopy(q).cpu()  # exact dynamic programming and the figures run here
-    theta_grid, starts, optimal, learned = dp_comparison(model, on_cpu)
+    theta_grid, starts, optimal, learned = dp_comparison(
+        model, on_cpu, gamma=config.q_iteration.gamma
+    )
     dp_ratio = float(learned.mean() / optimal.mean())
     per_theta = learned.mean(1) / optimal.mean(1)
 
@@ -91,7 +98,7 @@ def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
         "dp_ratio_min_per_theta": float(per_theta.min()),
         "timings": {"train_s": train_s, **recovery["timings"]},
     }
-    arrays = _figure_arrays(model, on_cpu, theta_grid, optimal, learned)
+    arrays = _figure_arrays(model, on_cpu, theta_grid, optimal, learned, config.q_iteration.gamma)
     # interrupted while writing, the folder keeps the earlier run's files, not a mixture
     with staged(out) as staging:
         write_text(staging / "config.yaml", yaml.safe_dump(config_to_dict(config), sort_keys=False))
@@ -108,6 +115,7 @@ def _figure_arrays(
     theta_grid: torch.Tensor,
     optimal: torch.Tensor,
     learned: torch.Tensor,
+    gamma: float = 1.0,
 ) -> dict[str, np.ndarray]:
     """What ``q_function.png`` and ``dp_comparison.png`` show (``figures.npz``, from which
     ``irc report`` redraws them): Q at the start of a trial at the default θ, learned and
@@ -124,7 +132,7 @@ def _figure_arrays(
     return {
         "q_relative": relative.numpy(),
         "q_learned": q_learned.numpy(),
-        "q_optimal": optimal_values(model, theta, relative)[0].numpy(),
+        "q_optimal": optimal_values(model, theta, relative, gamma)[0].numpy(),
         "theta": theta[0].numpy(),
         "theta_names": np.array(model.theta_space.names),
         "dp_theta": theta_grid.numpy(),

@@ -72,12 +72,16 @@ def greedy_returns(
     q_values: Callable[[torch.Tensor], torch.Tensor],
     theta: torch.Tensor,
     relative_start: torch.Tensor,
+    gamma: float = 1.0,
 ) -> torch.Tensor:
-    """Expected return ``[n_theta, n_start]`` of acting greedily on ``q_values(features)``.
+    """Expected return ``[n_theta, n_start]`` of acting greedily on ``q_values(features)``,
+    each reward at step ``t`` counted ``γᵗ`` (as :func:`optimal_values` counts it).
 
     The belief is deterministic, so the return (under the agent's own model) is exact.
     """
     theta, relative_start = _inputs(model, theta, relative_start)
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma: expected a discount in (0, 1], got {gamma}")
     n_theta, n_start = theta.shape[0], relative_start.shape[0]
     theta = theta.unsqueeze(1).expand(n_theta, n_start, -1)
     target = -relative_start.view(1, -1, 1).expand(n_theta, n_start, 1)
@@ -96,7 +100,7 @@ def greedy_returns(
         action = q.argmax(-1)
         stop = model.stops(action, step)
         reward = model.belief_reward(mean, cov, target, action, stop, theta)[..., 0]
-        total += torch.where(alive, reward, torch.zeros_like(reward))
+        total += gamma**t * torch.where(alive, reward, torch.zeros_like(reward))
         alive &= action != STOP
         mean, cov = ekf_predict(model, mean, cov, action, theta)
     return total
