@@ -7,6 +7,8 @@ import math
 import pytest
 import torch
 from scipy import stats
+from tensordict import TensorDict
+from torch import nn
 
 import irc_torchrl.algorithms.fit as fit_module
 from irc_torchrl.algorithms.fit import (
@@ -446,6 +448,19 @@ def test_correlations_are_those_of_the_inverse_curvature_and_unknown_where_unbou
     torch.testing.assert_close(r[1].diagonal()[others], torch.ones(k - 1, dtype=torch.float64))
 
 
+def test_a_wald_interval_ends_1_96_unconstrained_standard_deviations_each_side():
+    """The literal two-sided 95% normal quantile, not the module's own constant (the tests
+    built on ``Z95`` would pass a 90% interval labelled 95%)."""
+    assert math.isclose(stats.norm.cdf(Z95), 0.975, abs_tol=1e-12)
+    space = ThetaSpace([Parameter("a", 0.0, 1.0, 0.5)])
+    u_hat = torch.zeros(1, 1, dtype=torch.float64)  # θ̂ = 0.5
+    hessian = torch.full((1, 1, 1), 4.0, dtype=torch.float64)  # sd_u = 0.5
+    iv = fisher_intervals(space, space.from_unconstrained(u_hat), u_hat, hessian)
+    ends = torch.cat([space.to_unconstrained(iv.low), space.to_unconstrained(iv.high)], -1)
+    expected = torch.tensor([[-0.98, 0.98]], dtype=torch.float64)
+    torch.testing.assert_close(ends, expected, atol=1e-3, rtol=0)
+
+
 def test_an_interval_is_narrow_only_while_it_spans_under_half_its_prior_range():
     """The identification flag's rule, at either side of half the range (ranges 1.0 and 2.3)."""
     low = torch.tensor([[0.5, -5.0]] * 2, dtype=torch.float64)
@@ -719,6 +734,16 @@ def test_a_start_competes_with_the_screened_draws(firefly1d_model, trained_q, sp
     assert not torch.equal(pairs[:, 1, :k], truth)
 
 
+def test_the_screened_prior_draws_follow_the_seed(firefly1d_model, trained_q, space):
+    """The seed spreads the screened draws: the same seed, the same candidates; another, others
+    (all 16 kept, so the comparison sees every draw, not only the most likely)."""
+    _, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1, n_agents=2)
+    loss = make_loss(firefly1d_model, trained_q, 2)
+    a, b, c = (_screen_starts(loss, trials, 16, 16, seed).sort(0).values for seed in (0, 0, 1))
+    assert torch.equal(a, b)
+    assert not torch.allclose(a, c)
+
+
 def test_a_start_on_the_bound_of_theta_climbs_as_a_screened_one(firefly1d_model, trained_q, space):
     """A start with log σ₀ on its bound (its unconstrained coordinate clamped at ±18) begins
     at the fit's ±BOUND. From beyond, the first step dragged it back along with g_a's step,
@@ -874,3 +899,35 @@ def test_the_1d_demo_and_recovery_check_their_settings_when_called_from_python(
         recover_agents(firefly1d_model, trained_q, AgentsConfig(temperature=-1.0), FitConfig(), 0)
     with pytest.raises(ValueError, match="fit.max_iter must be positive, got 0"):
         recover_agents(firefly1d_model, trained_q, AgentsConfig(), FitConfig(max_iter=0), 0)
+
+
+class _LeftRuledOutAfterTheFirstStep(nn.Module):
+    """Q = (-100 · step, 0, 0): the three actions alike at step 0, LEFT ruled out after."""
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        step = features[..., 3:4] * Firefly1DModel().max_steps  # the features' step / max_steps
+        return torch.cat([-100 * step, 0 * step, 0 * step], -1)
+
+
+def test_the_action_at_step_t_is_scored_with_the_features_of_step_t():
+    """A policy that reads the time: scored with the next step's features, LEFT at step 0 cost
+    about 100 nats instead of log 3."""
+    model = Firefly1DModel()
+    loss = InverseRationalLoss(
+        model, BoltzmannActionModel(_LeftRuledOutAfterTheFirstStep(), temperature=1.0)
+    )
+    theta = model.theta_space.default(torch.float64).unsqueeze(0)
+    steps = 3
+    trials = TensorDict(
+        {
+            "state": torch.zeros(1, 1, steps, 1),
+            "action": torch.tensor([[[0, 2, 2]]]),  # LEFT at step 0 only
+            "target": torch.full((1, 1, steps, 1), 5.0),
+            "mask": torch.ones(1, 1, steps, dtype=torch.bool),
+            "task_theta": theta.float().expand(1, 1, steps, -1).clone(),
+        },
+        batch_size=[1, 1, steps],
+    )
+    log_l = loss.log_likelihood(theta, torch.zeros(1, 1, dtype=torch.float64), trials)  # τ = 1
+    # step 0: one of three alike; steps 1 and 2: RIGHT, one of the two left (LEFT's e^-100 aside)
+    assert float(log_l) == pytest.approx(math.log(1 / 3) + 2 * math.log(1 / 2), abs=1e-6)

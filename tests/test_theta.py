@@ -235,6 +235,15 @@ def test_parameter_stores_plain_floats():
         Parameter(3, 0.0, 1.0, 0.5)
 
 
+def test_theta_near_its_bound_survives_the_unconstrained_round_trip_in_float64():
+    """The logit's clamp is float64's (√eps of the range): a θ 1e-6 of the range inside a bound
+    (a start or an interval's end there) comes back where it was, not moved inwards."""
+    space = ThetaSpace([Parameter("a", 2.0, 4.0, 3.0)])
+    theta = torch.tensor([[2.0 + 2e-6], [4.0 - 2e-6]], dtype=torch.float64)
+    back = space.from_unconstrained(space.to_unconstrained(theta))
+    torch.testing.assert_close(back, theta, rtol=0, atol=1e-12)
+
+
 def test_to_dict_refuses_a_last_dimension_other_than_dim():
     """Twelve entries for a 3-parameter space used to come back as the first three."""
     space = make_space()
