@@ -157,3 +157,85 @@ def test_the_1d_q_and_its_recovery_run_where_they_are_put():
     assert torch.equal(trials_meta["action"], trials["action"])
     del summary["timings"], summary_meta["timings"]
     assert summary_meta == summary
+
+
+def test_irc_simulate_and_fit_create_nothing_on_the_default_device(tmp_path, monkeypatch):
+    """``irc simulate`` and ``irc fit`` (both methods, a calibration refit, particle checks,
+    profile intervals): nothing lands on the default device, and the summaries agree (the
+    recordings' order was restored by a meta index: garbage θ̂, no error)."""
+    import json
+
+    from irc_torchrl.algorithms import recordings
+    from irc_torchrl.config import RecordingFitConfig, SimulateConfig
+
+    monkeypatch.setattr(recordings, "report_run", lambda folder: [])  # figures: not the point
+    simulated = {}
+    for default in ("cpu", "meta"):
+        with torch.device(default):
+            simulated[default] = recordings.simulate_recordings(
+                SimulateConfig(n_agents=2, n_trials=6, lapse=0.05), tmp_path / default,
+                seed=1, progress=False,
+            )  # fmt: skip
+    assert simulated["meta"]["agents"] == simulated["cpu"]["agents"]
+    files = [tmp_path / "cpu" / f"agent{i}.csv" for i in range(2)]
+    config = RecordingFitConfig(
+        n_screen=2, n_starts=1, max_iter=2, calibrate=1, particles=20, intervals="profile"
+    )
+    fits = {}
+    for default in ("cpu", "meta"):
+        with torch.device(default):
+            fits[default] = recordings.fit_recordings(
+                files, tmp_path / f"fit_{default}", config, method="both", progress=False
+            )
+    for method in ("map", "marginal"):
+        got, want = (json.dumps(fits[d]["methods"][method]["agents"]) for d in ("meta", "cpu"))
+        assert got == want  # (as text: NaN entries equal)
+
+
+def test_a_fit_finds_the_device_of_trials_held_without_one():
+    """A TensorDict built without ``device=`` (its ``.device`` None) holding a GPU's tensors:
+    the fit's own tensors go where the trials' are, not to the default device."""
+    from tensordict import TensorDict
+
+    from irc_torchrl.algorithms.fit import fit_theta
+
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    space = model.theta_space
+    theta = space.sample((2,), generator=torch.Generator().manual_seed(0))
+    policy = motor_noise_policy(actor, model.action_spec, 0.1)
+    held = simulate_agents(model, policy, theta, 4, space.default(), seed=1).select(
+        "state", "action", "target", "mask", "task_theta"
+    )
+    bare = TensorDict(held.to_dict(), batch_size=held.batch_size)
+    assert bare.device is None
+    loss = InverseRationalLoss(
+        model, censored_action_model(actor, model, "float32"), n_agents=2, method="map"
+    )
+    settings = {"n_screen": 2, "n_starts": 1, "max_iter": 2, "curvature": "bfgs"}
+    expected = fit_theta(loss, held, **settings)
+    with torch.device("meta"):
+        got = fit_theta(loss, bare, **settings)
+    assert got.theta_hat.device.type == "cpu"
+    assert torch.equal(got.theta_hat, expected.theta_hat)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_a_policy_loaded_on_the_gpu_simulates_and_its_1d_draws_score_there():
+    """``load_ensemble_policy(device="cuda")`` builds the model's action spec there: the task
+    probe (on the CPU) read its bounds as they were; a Boltzmann model's drawn actions took the
+    fit's CPU generator with CUDA probabilities."""
+    from irc_torchrl.envs import Firefly1DModel
+    from irc_torchrl.modules.factorised_q import FactorisedQ
+    from irc_torchrl.modules.likelihood import BoltzmannActionModel
+
+    actor, model, _ = load_ensemble_policy("firefly2d", device="cuda")
+    theta = model.theta_space.default(device="cuda").expand(2, -1)
+    policy = motor_noise_policy(actor, model.action_spec, 0.1, 0.05)
+    trials = simulate_agents(model, policy, theta, 3, seed=1)
+    assert trials["state"].device.type == "cuda"
+    one = Firefly1DModel()
+    q = FactorisedQ(one.belief_feature_dim, one.theta_space.dim, 3).cuda()
+    features = torch.zeros(4, one.belief_feature_dim + one.theta_space.dim, device="cuda")
+    nuisance = torch.zeros(4, 1, device="cuda")
+    logp = BoltzmannActionModel(q).log_prob_of_draw(features, nuisance, torch.Generator())
+    assert logp.device.type == "cuda"

@@ -231,8 +231,11 @@ def _shrink_tails(size: torch.Tensor, log_tail: torch.Tensor) -> torch.Tensor:
     """
     n_agents = size.shape[1]
     picks = torch.randint(
-        n_agents, (_RESAMPLES, n_agents), generator=torch.Generator().manual_seed(0)
-    )
+        n_agents,
+        (_RESAMPLES, n_agents),
+        generator=torch.Generator().manual_seed(0),
+        device="cpu",
+    ).to(size.device)
     quantile, scale = _quantile_and_scale(size[:, picks].movedim(1, 0).flatten(1, 2))
     resampled = (quantile / scale).log()
     ok = torch.isfinite(resampled)

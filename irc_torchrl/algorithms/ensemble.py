@@ -360,7 +360,7 @@ def _check_trainable(config: Firefly2DConfig, model: TaskModel) -> None:
     theta = model.theta_space.default().expand(2, -1)
     state, target = model.initial_state(theta, torch.Generator().manual_seed(0))
     step = torch.zeros(2, 1, dtype=torch.int64)
-    _succeeded(model, state, target, model.stops(spec.zero((2,)), step), theta)
+    _succeeded(model, state, target, model.stops(spec.zero((2,)).cpu(), step), theta)
 
 
 def _succeeded(

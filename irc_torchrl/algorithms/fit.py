@@ -276,7 +276,7 @@ def fit_theta(
         raise ValueError(f"intervals: expected one of {INTERVALS}, got {intervals!r}")
     trials = loss.validate(trials)
     space = loss.theta_space
-    n_agents, device = trials.shape[0], trials.device
+    n_agents, device = trials.shape[0], _trials_device(trials)
     free = space.free_mask
     k = int(free.sum())
     if k == 0:
@@ -547,7 +547,7 @@ def _checked_point(
     trials = loss.checked(theta, nuisance, trials)
     if nuisance is None:
         nuisance = loss.action_model.nuisance_init.expand(trials.shape[0], -1)
-    space, device = loss.theta_space, trials.device
+    space, device = loss.theta_space, _trials_device(trials)
     theta_free = space.to_unconstrained(theta.detach().double().to(device))[:, space.free_mask]
     return trials, theta_free, torch.cat([theta_free, nuisance.detach().double().to(device)], -1)
 
@@ -649,7 +649,7 @@ def profile_intervals(
     k, n_agents, n_named = int(free.sum()), result.theta_hat.shape[0], len(names)
     if n_named == 0:
         return wald
-    chosen = torch.tensor([space.free_names.index(n) for n in names])
+    chosen = torch.tensor([space.free_names.index(n) for n in names], device="cpu")
     centre = torch.cat([space.to_unconstrained(result.theta_hat)[:, free], result.nuisance], -1)
     device = centre.device
     # rows agent-major, then parameter, then side (−1, +1)
@@ -827,7 +827,7 @@ def particle_check(
     """
     trials, theta_free, point = _checked_point(loss, trials, theta, nuisance, 1)
     nuisance = point[:, theta_free.shape[-1] :]
-    theta = theta.detach().double().to(trials.device)
+    theta = theta.detach().double().to(_trials_device(trials))
     with torch.no_grad():
         approximate = loss.log_likelihood(theta, nuisance, trials)
     particle, ess = loss.particle_log_likelihood(theta, nuisance, trials, n_particles, seed)
@@ -960,6 +960,14 @@ def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) ->
     agent (rows agent-major, ``n_starts`` per agent; ``-inf`` where the agent has none)."""
     reached = torch.where(converged, value, torch.inf).view(-1, n_starts).amin(1)
     return value - reached.repeat_interleave(n_starts)
+
+
+def _trials_device(trials: TensorDictBase) -> torch.device:
+    """Where the trials' tensors live: the TensorDict's device, or (a TensorDict built without
+    one, ``TensorDict({...}, batch_size)`` of CUDA tensors) that of its mask."""
+    if trials.device is not None:
+        return trials.device
+    return next(iter(trials.values(include_nested=True, leaves_only=True))).device
 
 
 def _on_bound(u: torch.Tensor) -> torch.Tensor:
@@ -1151,7 +1159,7 @@ def _screen_starts(
     evenly by a Sobol sequence, plus the agent's own ``starts`` row (natural θ) if given.
     """
     space = loss.theta_space
-    n_agents, device = trials.shape[0], trials.device
+    n_agents, device = trials.shape[0], _trials_device(trials)
     free = space.free_mask
     k = int(free.sum())
     low, high = space.low(torch.float64)[free], space.high(torch.float64)[free]

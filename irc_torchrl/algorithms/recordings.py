@@ -307,7 +307,7 @@ def _pad_steps(trials: TensorDictBase, steps: int) -> TensorDictBase:
     if length == steps:
         return trials
     tail = trials[:, -1:].expand(n, steps - length).clone()
-    tail["mask"] = torch.zeros(n, steps - length, dtype=torch.bool)
+    tail["mask"] = torch.zeros(n, steps - length, dtype=torch.bool, device=trials["mask"].device)
     return torch.cat([trials, tail], 1)
 
 
@@ -368,7 +368,7 @@ def fit_recordings(
         labels = [str(path) for path in paths]
         _check_enough_actions(recordings, model, len(space.free_names), n_nuisance, labels)
         if config.covariance == "sandwich":
-            n_trials = torch.tensor([len(recording) for recording in recordings])
+            n_trials = torch.tensor([len(recording) for recording in recordings], device="cpu")
             check_sandwich(n_trials, len(space.free_names), n_nuisance, agents=labels)
         stages = recording_stages(
             out, config, ckpt["path"], model, recordings, space.free_names, seed, target, resume
@@ -557,7 +557,7 @@ def _fit_groups(
     for name, pieces in parts.items():
         order = [i for members, _ in pieces for i in members]
         combined = FitResult.cat([r.cpu() for _, r in pieces])
-        rank = torch.tensor(order).argsort()
+        rank = torch.tensor(order, device="cpu").argsort()
         fits[name] = combined.select(rank)
     timings["fit_s"] = sum(v for k, v in timings.items() if k.startswith("fit_"))
     return fits, beliefs, timings, checks, per_trial
@@ -711,7 +711,7 @@ def _scored(
     correlation = result.intervals.correlation(space.free_mask)
     free = space.free_names
     # the fit's intervals of the nuisance coordinates, mapped to motor noise and lapse rate
-    ends = result.nuisance_intervals(torch.tensor(action_model.nuisance_bounded))
+    ends = result.nuisance_intervals(torch.tensor(action_model.nuisance_bounded, device="cpu"))
     noise_ci = [action_model.motor_noise(end) for end in ends]
     lapse_ci = [action_model.lapse_rate(end) for end in ends]
     for i, agent in enumerate(scored["agents"]):

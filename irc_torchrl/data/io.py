@@ -426,8 +426,10 @@ def _field(trials: TensorDictBase, key: str, model: TaskModel) -> torch.Tensor:
         return trials[key]
     n, steps = trials.shape
     if key == "time":
-        return (torch.arange(steps, dtype=torch.float64) * model.dt).expand(n, steps)
-    return torch.arange(n).unsqueeze(-1).expand(n, steps)
+        return (torch.arange(steps, dtype=torch.float64, device=trials.device) * model.dt).expand(
+            n, steps
+        )
+    return torch.arange(n, device=trials.device).unsqueeze(-1).expand(n, steps)
 
 
 def _on_model_grid(
@@ -548,30 +550,33 @@ def _pack(
             np.stack([np.pad(t[n], (0, steps - len(t[n])), mode="edge") for n in names], -1)
             for _, t in trials
         ]
-        return torch.as_tensor(np.stack(rows), dtype=dtype)
+        return torch.as_tensor(np.stack(rows), dtype=dtype, device="cpu")
 
     theta_names = [THETA_PREFIX + n for n in model.theta_space.names]
     default = model.theta_space.default(torch.float64).numpy()
     for _, trial in trials:
         for name, value in zip(theta_names, default, strict=True):
             trial.setdefault(name, np.full(len(trial[time_column]), value))
-    lengths = torch.tensor([len(t[time_column]) for _, t in trials])
+    lengths = torch.tensor([len(t[time_column]) for _, t in trials], device="cpu")
     spec = model.action_spec
     if isinstance(spec, Categorical):
         action = stack(model.action_names, torch.int64)[..., 0]
     else:  # values past a bound by the checks' slack are an export's round-off
-        action = stack(model.action_names, torch.float32).clamp(spec.space.low, spec.space.high)
+        low, high = (x.to("cpu") for x in (spec.space.low, spec.space.high))  # a GPU model's
+        action = stack(model.action_names, torch.float32).clamp(low, high)
     labels = [label for label, _ in trials]
     # a label like 20240501.001 (session.trial) needs float64 to stay itself
     numbers = torch.tensor(
-        labels, dtype=torch.float64 if any(isinstance(n, float) for n in labels) else torch.int64
+        labels,
+        dtype=torch.float64 if any(isinstance(n, float) for n in labels) else torch.int64,
+        device="cpu",
     )
     return TensorDict(
         {
             "state": stack(model.state_names, torch.float32),
             "action": action,
             "target": stack(model.target_names, torch.float32),
-            "mask": torch.arange(steps) < lengths.unsqueeze(-1),
+            "mask": torch.arange(steps, device="cpu") < lengths.unsqueeze(-1),
             "task_theta": stack(theta_names, torch.float32),
             "time": stack([time_column], torch.float32)[..., 0],
             "trial": numbers.unsqueeze(-1).expand(-1, steps),

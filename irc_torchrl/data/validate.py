@@ -220,7 +220,9 @@ def _check_actions(where: str, trial: Trial, model: TaskModel, time: np.ndarray)
             name, v, bounds = model.action_names[0], value[i, 0], ""
             expected = f"an action index, an integer in 0..{spec.n - 1}"
         else:
-            low, high = spec.space.low.double().numpy(), spec.space.high.double().numpy()
+            low, high = (
+                x.to("cpu", torch.float64).numpy() for x in (spec.space.low, spec.space.high)
+            )
             j = int(np.argmax(np.maximum(low - value[i], value[i] - high)))  # the worst component
             name, v, bounds = model.action_names[j], value[i, j], f" [{low[j]:g}, {high[j]:g}]"
             expected = "a dimensionless control within the action bounds"

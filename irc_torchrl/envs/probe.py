@@ -313,7 +313,9 @@ def _probe_action(model: TaskModel, dtype: torch.dtype) -> torch.Tensor:
     spec = model.action_spec
     if isinstance(spec, Categorical):
         return torch.tensor([min(1, spec.n - 1), spec.n - 1], dtype=spec.dtype)
-    low, high = spec.space.low.to(dtype), spec.space.high.to(dtype)
+    # on the CPU, where the probe runs: a model built on a GPU (load_ensemble_policy, irc train
+    # --device) has its spec there
+    low, high = (x.to("cpu", dtype) for x in (spec.space.low, spec.space.high))
     bounded = torch.isfinite(high - low) & (high - low < torch.finfo(torch.float32).max)
     up = torch.tensor([[0.75], [0.25]], dtype=dtype)
     action = torch.where(bounded, low + up * (high - low), 2 * up - 1)

@@ -128,9 +128,9 @@ class BoltzmannActionModel(nn.Module):
     ) -> torch.Tensor:
         """``log p(ã)`` of an action ``ã`` drawn from the model (held fixed), ``[*B]``."""
         logp = torch.log_softmax(self.logits(features, nuisance), -1)
-        draw = torch.multinomial(
-            logp.detach().exp().reshape(-1, logp.shape[-1]), 1, generator=generator
-        )
+        # drawn where the generator lives (a fit's is on the CPU), as the Gaussian draws are
+        probs = logp.detach().exp().reshape(-1, logp.shape[-1]).to(generator.device)
+        draw = torch.multinomial(probs, 1, generator=generator).to(logp.device)
         return logp.gather(-1, draw.view(*logp.shape[:-1], 1)).squeeze(-1)
 
 
