@@ -123,14 +123,18 @@ def _train(args: argparse.Namespace) -> int:
         seed=args.seed,
         model=model,
     )
-    best = result.best
+    print(_best_policy(result.best))
+    print(f"wrote {args.out}/: checkpoint.pt, config.yaml, summary.json, logs/")
+    return 0
+
+
+def _best_policy(best: dict[str, Any]) -> str:
+    """The line ``irc train`` ends with: the kept policy's evaluation."""
     success = f"success {best['success_rate']:.1%}, " if best["success_rate"] is not None else ""
-    print(
+    return (
         f"best policy: {success}return {best['mean_return']:.2f}, "
         f"trial length {best['mean_length']:.1f} steps (after {best['updates']} updates)"
     )
-    print(f"wrote {args.out}/: checkpoint.pt, config.yaml, summary.json, logs/")
-    return 0
 
 
 def _task_file(spec: str) -> bool:
@@ -292,9 +296,37 @@ def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]
 def _report(args: argparse.Namespace) -> int:
     from irc_torchrl.plots import report_run
 
-    for path in report_run(args.folder):
+    drawn = report_run(args.folder)
+    table = _table(json.loads((Path(args.folder) / "summary.json").read_text()))
+    if table:
+        print(table)
+    for path in drawn:
         print(f"wrote {path}")
     return 0
+
+
+def _table(summary: dict[str, Any]) -> str | None:
+    """The table the run printed as it ended, from its summary (``None``: it printed none); a
+    hand-edited summary the figures could be drawn from but the table not is warned about."""
+    from irc_torchrl.algorithms.demo import format_summary
+    from irc_torchrl.algorithms.recordings import format_fit
+    from irc_torchrl.algorithms.recover2d import format_recovery
+
+    command = summary.get("command")
+    recovered = command in ("recover", "demo") and "methods" in summary  # the 2D demo's too
+    try:
+        if command == "train":
+            return _best_policy(summary["best"])
+        if recovered:
+            return format_recovery(summary)
+        if command in ("fit", "demo"):
+            return (format_fit if command == "fit" else format_summary)(summary)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as error:
+        warnings.warn(
+            f"report: summary.json lacks or mangles field {error}: its table is not printed",
+            stacklevel=2,
+        )
+    return None
 
 
 def _add_common(parser: argparse.ArgumentParser, overrides_help: str) -> None:
@@ -423,9 +455,10 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     fit.set_defaults(run=_fit)
     report = commands.add_parser(
         "report",
-        help="draw the figures of a run folder (fit, recover, demo or train) as PNG",
+        help="print the table of a run folder (fit, recover, demo or train), draw its figures",
         description=(
-            "Read DIR/summary.json and write PNG figures into DIR: θ̂ against the true θ with "
+            "Read DIR/summary.json, print the table the run ended with (the best policy for "
+            "`irc train`) and write PNG figures into DIR: θ̂ against the true θ with "
             "95% intervals for the recordings whose truth is known (the others' θ̂ is in the "
             "table and summary.json; with no truth, θ̂ with intervals per recording), "
             "the recovered beliefs (from beliefs.npz), training curves for `irc train`, and for "

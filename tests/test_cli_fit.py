@@ -241,7 +241,17 @@ def test_report_redraws_a_fit_folder(fitted, tmp_path, capsys):
     for name in ("summary.json", "beliefs.npz"):
         shutil.copy(source / name, folder / name)
     assert main(["report", str(folder)]) == 0
-    assert "recovery.png" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "recovery.png" in out
+    # the table the fit printed as it ended, from the summary alone
+    summary = json.loads((folder / "summary.json").read_text())
+    assert format_fit(summary) in out
+    mangled = {**summary, "agents": [{**summary["agents"][0], "converged": None}]}
+    del mangled["agents"][0]["log_likelihood"]
+    (folder / "summary.json").write_text(json.dumps(mangled))
+    with pytest.warns(UserWarning, match="report: summary.json lacks or mangles field "
+                      "'log_likelihood': its table is not printed"):  # fmt: skip
+        assert main(["report", str(folder)]) == 0
     for name in (
         "recovery.png",
         "agent0_beliefs_overhead.png",
@@ -285,10 +295,12 @@ def test_report_skips_the_q_figure_when_its_checkpoint_is_gone(fitted, tmp_path)
     assert not (tmp_path / "q_function.png").exists()
 
 
-def test_report_draws_training_curves(tmp_path):
+def test_report_draws_training_curves(tmp_path, capsys):
     settings = [o for o in TINY_TRAIN if not o.startswith("logger=")]  # the CSV logger: logs/
     assert main(["train", "--out", str(tmp_path), "--quiet", *settings]) == 0
+    trained = capsys.readouterr().out.splitlines()[0]
     assert main(["report", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == trained  # "best policy: …"
     for name in ("training.png", "q_function.png"):  # Q from the run's own checkpoint
         assert (tmp_path / name).read_bytes()[:8] == PNG
 
@@ -790,7 +802,7 @@ def test_help_lists_every_subcommand_with_a_purpose(capsys):
         "simulate simulate agents of the 2D task (or --model) into recording files, with their "
         "true θ",
         "fit fit θ with 95% intervals to recorded trials",
-        "report draw the figures of a run folder (fit, recover, demo or train) as PNG",
+        "report print the table of a run folder (fit, recover, demo or train), draw its figures",
         "demo ",
         "train ",
     ):

@@ -9,6 +9,7 @@ import pytest
 import yaml
 from matplotlib.image import imread
 
+from irc_torchrl.algorithms.demo import format_summary
 from irc_torchrl.cli import build_parser, main
 from irc_torchrl.config import (
     Firefly1DConfig,
@@ -214,7 +215,7 @@ def test_unknown_key_on_the_command_line_exits_2(capsys, tmp_path):
     assert not (tmp_path / "summary.json").exists()
 
 
-def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
+def test_demo_writes_a_reproducible_summary_and_figures(tmp_path, capsys):
     runs = []
     for name in ("a", "b"):
         out = tmp_path / name
@@ -252,7 +253,9 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path):
     drawn = {f: imread(tmp_path / "a" / f) for f in figures}
     for figure in tmp_path.joinpath("a").glob("*.png"):
         figure.unlink()
+    capsys.readouterr()
     assert main(["report", str(tmp_path / "a")]) == 0
+    assert capsys.readouterr().out.startswith(format_summary(summary))  # the demo's table
     for figure, pixels in drawn.items():
         assert np.array_equal(imread(tmp_path / "a" / figure), pixels), figure
 
