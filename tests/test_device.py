@@ -11,7 +11,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from irc_torchrl.algorithms.ensemble import load_ensemble_policy
+from irc_torchrl.algorithms.ensemble import (
+    critic_slices,
+    load_ensemble_critic,
+    load_ensemble_policy,
+)
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.objectives.inverse import InverseRationalLoss
@@ -239,3 +243,17 @@ def test_a_policy_loaded_on_the_gpu_simulates_and_its_1d_draws_score_there():
     nuisance = torch.zeros(4, 1, device="cuda")
     logp = BoltzmannActionModel(q).log_prob_of_draw(features, nuisance, torch.Generator())
     assert logp.device.type == "cuda"
+
+
+def test_the_critic_loads_on_the_device_asked_and_its_slices_are_taken_there():
+    """``load_ensemble_critic(device=...)`` as ``load_ensemble_policy``: built there whatever the
+    default device, and Fig. 1B's slices computed where the critic is, returned on the CPU."""
+    critic, actor, model = load_ensemble_critic("firefly2d")
+    expected = critic_slices(model, critic, actor, model.theta_space.default(), n=5)
+    with torch.device("meta"):
+        critic, actor, model = load_ensemble_critic("firefly2d", device="cpu")
+        assert {p.device.type for p in [*critic.parameters(), *actor.parameters()]} == {"cpu"}
+        got = critic_slices(model, critic, actor, model.theta_space.default(device="cpu"), n=5)
+    for key, value in expected.items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(got[key], value), key

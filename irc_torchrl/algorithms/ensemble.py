@@ -1251,18 +1251,20 @@ def load_ensemble_policy(
 
 
 def load_ensemble_critic(
-    source: str | Path = TASK, model: TaskModel | None = None
+    source: str | Path = TASK, device: torch.device | str = "cpu", model: TaskModel | None = None
 ) -> tuple[TensorDictSequential, TensorDictSequential, TaskModel]:
     """A checkpoint's critic and the actor it values, both at its last update.
 
     Returns ``(critic, actor, model)``; the critic is ``Q(b, a, θ)`` of that actor (the kept
-    policy may be an earlier one). ``model`` as in :func:`load_ensemble_policy`.
+    policy may be an earlier one). ``device`` and ``model`` as in :func:`load_ensemble_policy`.
     """
-    config, model, ckpt = _load(source, ("actor", "loss"), model)
-    hidden, activation = config.ddpg.hidden, config.ddpg.activation
-    with _caller_rng_kept(torch.device("cpu")):
-        actor = make_actor(model, hidden, activation)
-        critic = make_critic(model, hidden, activation)
+    device = resolve_device(str(device))
+    with torch.device(device):
+        config, model, ckpt = _load(source, ("actor", "loss"), model)
+        hidden, activation = config.ddpg.hidden, config.ddpg.activation
+        with _caller_rng_kept(device):
+            actor = make_actor(model, hidden, activation)
+            critic = make_critic(model, hidden, activation)
     _restore(actor, ckpt, "actor")
     # DDPG's critic, or the first of TD3's twin copies (stacked along a leading dimension)
     twin = config.ddpg.loss == "td3"
@@ -1290,7 +1292,8 @@ def critic_slices(
     first step where it may stop. ``value``: ``Q(b, π(b); θ)`` for the target at each point of
     an ``n × n`` grid (ahead, aside). ``q_far`` / ``q_near``: ``Q`` over the action square for a
     target ahead-left at mid distance / at the agent's feet, with ``π(b)`` as ``pi_far`` /
-    ``pi_near``. Distances are in the task's units.
+    ``pi_near``. Distances are in the task's units. Evaluated where the critic is; returned on
+    the CPU.
     """
     theta = model.theta_space.validate(theta, "theta")
     if theta.shape != (model.theta_space.dim,):
@@ -1298,6 +1301,20 @@ def critic_slices(
             f"theta: expected one θ [{model.theta_space.dim}], got {list(theta.shape)}"
         )
     n = count("n", n)
+    device = next(critic.parameters()).device
+    with torch.device(device):
+        out = _critic_slices(model, critic, actor, theta.to(device), n)
+    return {k: v.cpu() if isinstance(v, torch.Tensor) else v for k, v in out.items()}
+
+
+def _critic_slices(
+    model: Firefly2DModel,
+    critic: TensorDictSequential,
+    actor: TensorDictSequential,
+    theta: torch.Tensor,
+    n: int,
+) -> dict[str, Any]:
+    """:func:`critic_slices` on the default device, once its inputs are checked."""
     far = float(model.target_distance[1])
     ahead = torch.linspace(-0.25 * far, far, n)
     aside = torch.linspace(-0.6 * far, 0.6 * far, n)
