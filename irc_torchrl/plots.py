@@ -429,13 +429,16 @@ def report_run(folder: str | Path) -> list[Path]:
         raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
     beliefs, figures = _archive(folder / "beliefs.npz"), _archive(folder / "figures.npz")
     recovered = summary.get("command") in ("recover", "demo") and summary.get("methods")
-    for lacking, name in (
-        (summary.get("command") == "fit" and beliefs is None, "beliefs.npz"),
-        (recovered and not (folder / "trials").is_dir(), "trials/"),
+    demo_1d = summary.get("command") == "demo" and not recovered
+    for lacking, name, figures_of in (
+        (summary.get("command") == "fit" and beliefs is None, "beliefs.npz", "belief"),
+        (recovered and not (folder / "trials").is_dir(), "trials/", "belief"),
+        (demo_1d and figures is None, "figures.npz", "Q and DP"),
     ):
         if lacking:
             warnings.warn(
-                f"report: no {name} in {folder}: the belief figures are not drawn", stacklevel=2
+                f"report: no {name} in {folder}: the {figures_of} figures are not drawn",
+                stacklevel=2,
             )
     trials = _recovered_trials(summary, folder / "trials")
     # every figure is drawn aside first, so a field found lacking half-way leaves none behind

@@ -258,6 +258,11 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path, capsys):
     assert capsys.readouterr().out.startswith(format_summary(summary))  # the demo's table
     for figure, pixels in drawn.items():
         assert np.array_equal(imread(tmp_path / "a" / figure), pixels), figure
+    # without figures.npz the Q and DP figures cannot be drawn: said, not skipped in silence
+    (tmp_path / "a" / "figures.npz").unlink()
+    lacking = "report: no figures.npz in .*: the Q and DP figures are not drawn"
+    with pytest.warns(UserWarning, match=lacking):
+        assert main(["report", str(tmp_path / "a")]) == 0
 
 
 def test_worker_processes_are_refused_off_the_cpu():
