@@ -965,9 +965,7 @@ def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) ->
 def _trials_device(trials: TensorDictBase) -> torch.device:
     """Where the trials' tensors live: the TensorDict's device, or (a TensorDict built without
     one, ``TensorDict({...}, batch_size)`` of CUDA tensors) that of its mask."""
-    if trials.device is not None:
-        return trials.device
-    return next(iter(trials.values(include_nested=True, leaves_only=True))).device
+    return trials.device if trials.device is not None else trials["mask"].device
 
 
 def _on_bound(u: torch.Tensor) -> torch.Tensor:
