@@ -35,6 +35,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import yaml
 from tensordict import TensorDict, TensorDictBase
@@ -888,7 +889,7 @@ def _train(
         new_frames = batch.numel()
         frames += new_frames
         _extend(buffer, multi_step, batch)
-        noise.step(new_frames)
+        _anneal(noise, new_frames)
         if bar is not None:
             bar.update(new_frames)
         if len(buffer) < warmup:
@@ -1009,6 +1010,17 @@ def _pretrain(
         opt_critic.step()
         opt_critic.zero_grad()
         target_update.step()
+
+
+def _anneal(noise: AdditiveGaussianModule, frames: int) -> None:
+    """``noise.step(frames)`` bit for bit, in float32 NumPy: TorchRL's loops over the frames
+    with a few tensor ops each (7.7 ms of a 256-frame batch on the CPU, against 0.5 ms)."""
+    with torch.no_grad():
+        rate = ((noise.sigma_init - noise.sigma_end) / noise.annealing_num_steps).cpu().numpy()
+        sigma, end = noise.sigma.cpu().numpy(), noise.sigma_end.cpu().numpy()
+        for _ in range(frames):  # each step rounds to float32, as TorchRL's
+            sigma = np.maximum(end, sigma - rate)
+        noise.sigma.copy_(torch.as_tensor(sigma))
 
 
 def _set_lr(optimiser: torch.optim.Optimizer, lr: float) -> None:
