@@ -14,19 +14,22 @@ import irc_torchrl.algorithms.fit as fit_module
 from irc_torchrl.algorithms.fit import (
     BOUND,
     MAX_STEP,
+    FitResult,
     _behind_best,
     _bfgs_update,
     _profile_start,
     _screen_starts,
+    check_sandwich,
     fit_theta,
     profile_intervals,
 )
 from irc_torchrl.algorithms.simulate import boltzmann_policy, first_trial_mask, simulate_agents
-from irc_torchrl.envs.firefly1d import STOP, Firefly1DModel
+from irc_torchrl.envs.firefly1d import LEFT, RIGHT, STOP, Firefly1DModel
 from irc_torchrl.envs.firefly2d import firefly2d_theta_space
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.fisher import (
     Z95,
+    Intervals,
     batched_hessian,
     fisher_intervals,
     narrow,
@@ -931,3 +934,106 @@ def test_the_action_at_step_t_is_scored_with_the_features_of_step_t():
     log_l = loss.log_likelihood(theta, torch.zeros(1, 1, dtype=torch.float64), trials)  # τ = 1
     # step 0: one of three alike; steps 1 and 2: RIGHT, one of the two left (LEFT's e^-100 aside)
     assert float(log_l) == pytest.approx(math.log(1 / 3) + 2 * math.log(1 / 2), abs=1e-6)
+
+
+class _GainOnly(nn.Module):
+    """Q = (3 · g_a normalised, −1, 0) for (LEFT, STOP, RIGHT): actions read g_a (and the
+    temperature) alone, never the belief, so a fit of g_a takes milliseconds."""
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        gain = features[..., 5:6]  # the first θ feature: g_a in [-1, 1]
+        return torch.cat([3.0 * gain, 0 * gain - 1.0, 0 * gain], -1)
+
+
+def _gain_only_fit() -> tuple[InverseRationalLoss, TensorDict, FitResult]:
+    """A BFGS fit of g_a alone (the rest fixed) to 24 three-step trials ending in a stop, whose
+    θ̂ lies near g_a's lower bound: there the Wald interval spans most of the range."""
+    space = Firefly1DModel().theta_space
+    fixed = {"log_sigma0": space["log_sigma0"].default, "goal_radius": 1.0, "move_cost": 0.3}
+    model = Firefly1DModel(theta_space=ThetaSpace(list(space.parameters), fixed=fixed))
+    generator = torch.Generator().manual_seed(0)
+    action = torch.where(torch.rand(1, 24, 3, generator=generator) < 0.3, LEFT, RIGHT)
+    action[..., -1] = STOP
+    trials = TensorDict(
+        {
+            "state": torch.zeros(1, 24, 3, 1),
+            "action": action,
+            "target": torch.full((1, 24, 3, 1), 5.0),
+            "mask": torch.ones(1, 24, 3, dtype=torch.bool),
+            "task_theta": model.theta_space.default().expand(1, 24, 3, -1).clone(),
+        },
+        batch_size=[1, 24, 3],
+    )
+    loss = InverseRationalLoss(model, BoltzmannActionModel(_GainOnly(), temperature=1.0))
+    result = fit_theta(loss, trials, n_starts=1, n_screen=4, max_iter=40, curvature="bfgs")
+    return loss, trials, result
+
+
+def test_a_bfgs_fit_is_converged_only_where_the_exact_curvature_at_theta_hat_is_a_maximum(
+    monkeypatch,
+):
+    """BFGS's own curvature is positive definite by construction; whether θ̂ is a maximum is
+    read from the exact curvature computed there at the end: indefinite (a saddle BFGS
+    stopped on), the fit is not converged."""
+    assert bool(_gain_only_fit()[2].converged.all())
+    exact = fit_module.batched_hessian
+
+    def indefinite(function, params):
+        value, gradient, hessian = exact(function, params)
+        return value, gradient, -hessian
+
+    monkeypatch.setattr(fit_module, "batched_hessian", indefinite)
+    assert not bool(_gain_only_fit()[2].converged.any())
+
+
+def test_a_profile_search_cut_short_keeps_the_wald_interval_and_decides_identification():
+    """A parameter is profiled only where both ends were found (8 iterations find the bound
+    side only: the half-found end was reported, 0.991 for 0.947); a profiled one is identified
+    by its profile interval, not by the Wald one spanning most of the range."""
+    loss, trials, result = _gain_only_fit()
+    assert not bool(result.intervals.identified[0, 0])
+    full = profile_intervals(loss, trials, result, max_iter=60)
+    assert bool(full.profiled[0, 0]) and bool(full.identified[0, 0])
+    assert bool(narrow(loss.theta_space, full.low, full.high)[0, 0])
+    short = profile_intervals(loss, trials, result, max_iter=8)
+    if bool(short.profiled[0, 0]):  # only a finished search replaces the Wald ends
+        torch.testing.assert_close(short.high, full.high, atol=1e-3, rtol=0)
+        torch.testing.assert_close(short.low, full.low, atol=1e-3, rtol=0)
+    else:
+        assert torch.equal(short.low, result.intervals.low)
+        assert torch.equal(short.high, result.intervals.high)
+
+
+def test_nuisance_intervals_take_the_inverse_informations_diagonal_not_its_inverse_diagonal():
+    """A nuisance traded off against θ is known as well as √((I⁻¹)ₙₙ) says; 1/√Iₙₙ ignores the
+    trade-off, 3× too narrow here."""
+    information = torch.tensor([[[2.0, 1.9], [1.9, 2.0]]], dtype=torch.float64)
+    result = FitResult(
+        theta_hat=torch.tensor([[1.0]], dtype=torch.float64),
+        nuisance=torch.tensor([[0.5]], dtype=torch.float64),
+        log_likelihood=torch.zeros(1, dtype=torch.float64),
+        intervals=Intervals(
+            std=torch.ones(1, 1),
+            low=torch.zeros(1, 1),
+            high=torch.full((1, 1), 2.0),
+            identified=torch.ones(1, 1, dtype=torch.bool),
+            covariance=torch.ones(1, 1, 1),
+            profiled=torch.zeros(1, 1, dtype=torch.bool),
+        ),
+        converged=torch.ones(1, dtype=torch.bool),
+        iterations=1,
+        names=["a"],
+        information=information,
+    )
+    low, high = result.nuisance_intervals(torch.tensor([False]))
+    half = Z95 * math.sqrt(2.0 / (2.0 * 2.0 - 1.9**2))
+    expected = torch.tensor([[0.5 - half, 0.5 + half]], dtype=torch.float64)
+    torch.testing.assert_close(torch.cat([low, high], -1), expected, rtol=1e-6, atol=0)
+
+
+def test_the_sandwich_needs_as_many_trials_as_theta_and_nuisance_coordinates():
+    """Its middle is one outer product of scores per trial: 9 trials for 8 θ coordinates and 2
+    nuisance ones leave it singular."""
+    check_sandwich(torch.tensor([10, 12]), 8, 2)
+    with pytest.raises(ValueError, match="covariance"):
+        check_sandwich(torch.tensor([12, 9]), 8, 2)

@@ -19,7 +19,9 @@ from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.data.io import read_trials, trials_to_columns, write_trials
 from irc_torchrl.data.trajectories import recorded_stops
+from irc_torchrl.data.validate import check_stops
 from irc_torchrl.envs import Firefly1DModel, Firefly2DModel
+from irc_torchrl.envs.firefly1d import LEFT, STOP
 
 
 def _simulated(model, n_agents: int, seed: int) -> TensorDict:
@@ -281,6 +283,30 @@ def test_a_memmap_folder_is_checked_as_held_trials(
     assert str(tmp_path / "held") in str(excinfo.value)
 
 
+def test_a_gap_is_measured_in_the_recordings_own_step_not_the_models(tmp_path, model2d):
+    """At twice the model's rate one lost sample is a gap (two of its steps; one model step);
+    at half its rate every step is two model steps, and none of them a gap."""
+    fine = _hand_made([0], steps=24, dt=model2d.dt / 2)
+    kept = np.arange(24) != 10
+    path = _write_recording({k: v[kept] for k, v in fine.items()}, tmp_path / "fine.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # kept as recorded, off the model's step
+        with pytest.raises(ValueError, match="time jumps from 0.45 s to 0.55 s"):
+            read_trials(path, model2d, resample=False)
+    coarse = _hand_made([0], steps=8, dt=2 * model2d.dt)
+    path = _write_recording(coarse, tmp_path / "coarse.csv")
+    with pytest.warns(UserWarning, match="kept as recorded"):
+        assert read_trials(path, model2d, resample=False).shape[-1] == 8
+
+
+def test_a_trial_cut_before_its_stop_reads_without_a_stop_warning(tmp_path, model2d):
+    """A recording ending while the agent still runs has no stop to go on past."""
+    path = _write_recording(_hand_made([0]), tmp_path / "running.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert int(read_trials(path, model2d)["mask"].sum()) == 12
+
+
 def test_a_memmap_folder_of_several_agents_is_refused(tmp_path, model2d, trials2d):
     # irc recover's trials/ is [agent, trial, step]: pooled, they would read as one agent
     held = trials2d.select("state", "action", "target", "mask", "task_theta")
@@ -381,6 +407,23 @@ def test_a_trial_resampled_off_its_grid_keeps_its_last_sample_the_stop(tmp_path,
     assert recorded_stops(back, model2d)[:, -1].all()
     assert back["action"][:, -1, 0].tolist() == [0.0, 0.0]
     torch.testing.assert_close(back["action"][:, -2, 0], torch.full((2,), 0.5 / 1.2))
+
+
+def test_a_discrete_trial_that_times_out_without_a_stop_is_no_stop_with_steps_after(model1d):
+    """A 1D trial that ran out of steps moving (no STOP) is a trial like any other; read as a
+    stop at step 0, it was refused as 'stops 0 s into it, yet 4 steps follow'."""
+    steps = 5
+    held = TensorDict(
+        {
+            "action": torch.full((2, steps), LEFT),
+            "mask": torch.ones(2, steps, dtype=torch.bool),
+            "trial": torch.arange(2).unsqueeze(-1).expand(2, steps),
+            "time": torch.arange(steps, dtype=torch.float32).expand(2, steps) * model1d.dt,
+        },
+        batch_size=[2, steps],
+    )
+    held["action"][1, -1] = STOP  # the other one stops on its last step
+    check_stops(held, model1d, "session.csv")
 
 
 def test_a_discrete_stop_between_two_model_steps_is_kept(tmp_path, model1d):
