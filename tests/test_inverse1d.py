@@ -851,6 +851,40 @@ def test_a_fit_in_worker_processes_equals_its_shards_fitted_in_turn(
     assert calls == [(i, 40) for i in range(1, sharded.iterations + 1)]
 
 
+class _UndefinedAboveGain(Firefly1DModel):
+    """The 1D task undefined (NaN) for g_a > 1.4, as a user's task may be; importable by the
+    worker processes (their path is this process's)."""
+
+    def transition(self, state, action, theta):
+        undefined = self.parameter(theta, "g_a") > 1.4
+        return torch.where(undefined, torch.nan, super().transition(state, action, theta))
+
+
+def test_a_worker_process_names_its_agent_among_all_and_its_warnings_reach_the_caller(
+    firefly1d_model, trained_q, space
+):
+    """An agent failing in the second process was named by its place in its shard (agent 0
+    for agent 2), after the other shard's work; its warnings went to stderr as text, past the
+    caller's warning filters."""
+    _, trials = _simulate_recovery(firefly1d_model, trained_q, space, 0, 1, n_agents=3)
+    loss = make_loss(_UndefinedAboveGain(), trained_q, 3)
+    starts = space.default(torch.float64).repeat(3, 1)
+    starts[2, 0] = 1.45
+    with pytest.raises(ValueError, match="fit: agent 2's log-likelihood is NaN at 1 of its 1"):
+        fit_theta(loss, trials, n_screen=0, n_starts=1, starts=starts, workers=2)
+    with pytest.warns(UserWarning, match=r"fit: the log-likelihood is NaN at \d+ of \d+ screened"):
+        fit_theta(loss, trials, n_screen=16, n_starts=1, max_iter=1, workers=2)
+
+
+def test_a_loss_that_cannot_reach_worker_processes_is_refused_before_any_starts(
+    trained_q, small_trials
+):
+    model = Firefly1DModel()
+    model.hook = lambda: None  # an attribute pickle cannot send
+    with pytest.raises(TypeError, match="workers: the loss cannot be sent to worker processes"):
+        fit_theta(make_loss(model, trained_q, 3), small_trials, workers=2)
+
+
 @pytest.mark.parametrize("workers", [0, 1.5, True])
 def test_fit_rejects_a_bad_worker_count(firefly1d_model, trained_q, small_trials, workers):
     loss = make_loss(firefly1d_model, trained_q, 3)

@@ -16,6 +16,10 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import os
+import pickle
+import signal
+import threading
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -27,7 +31,7 @@ import torch
 from tensordict import TensorDictBase
 
 from irc_torchrl.algorithms.runtime import check_workers, flushing_denormals
-from irc_torchrl.checks import count, positive_number
+from irc_torchrl.checks import count, first_line, positive_number
 from irc_torchrl.checks import seed as check_seed
 from irc_torchrl.objectives.fisher import (
     Z95,
@@ -848,7 +852,16 @@ def _fit_in_processes(
     progress: Callable[[int, int], None] | None,
 ) -> FitResult:
     """:func:`fit_theta` of ``workers`` contiguous shards of the agents, each in a process of
-    its own; ``progress`` follows the shard furthest behind."""
+    its own; ``progress`` follows the shard furthest behind. A shard that fails, or an
+    interrupt here, ends the other processes at once; a shard's warnings are raised here."""
+    try:  # here, before any process starts, not as a broken pool in a worker
+        sent = pickle.dumps(loss)
+    except Exception as error:
+        raise TypeError(
+            f"workers: the loss cannot be sent to worker processes ({first_line(error)}); "
+            f"expected workers=1, or a task whose class and attributes pickle (a class at "
+            f"the top level of an importable module)"
+        ) from None
     shards = torch.arange(trials.shape[0]).tensor_split(workers)
     context = multiprocessing.get_context("spawn")  # fork is unsafe once torch's threads run
     reports = context.Queue()
@@ -863,14 +876,27 @@ def _fit_in_processes(
         reported = max(reported, upto)
 
     report = progress is not None
-    with ProcessPoolExecutor(
+    pool = ProcessPoolExecutor(
         workers, mp_context=context, initializer=_start_worker, initargs=setup
-    ) as pool:
+    )
+    try:
         futures = [
-            pool.submit(_fit_shard, i, loss, trials[rows], _rows_of(starts, rows), settings, report)
+            pool.submit(
+                _fit_shard,
+                i,
+                int(rows[0]),
+                sent,
+                trials[rows],
+                _rows_of(starts, rows),
+                settings,
+                report,
+            )
             for i, rows in enumerate(shards)
         ]
         while not all(f.done() for f in futures):
+            failed = [f for f in futures if f.done() and f.exception() is not None]
+            if failed:  # the first failure is the fit's: the other shards' work is moot
+                raise failed[0].exception()
             try:
                 shard, iteration = reports.get(timeout=0.5)
                 reached[shard] = iteration
@@ -879,10 +905,31 @@ def _fit_in_processes(
             running = [reached[i] for i, f in enumerate(futures) if not f.done()]
             if report and running:
                 advance(min(running))
-        result = FitResult.cat([f.result() for f in futures])
+        done = [f.result() for f in futures]
+    except BaseException:
+        _end_workers(pool)
+        raise
+    pool.shutdown()
+    for _, caught in done:
+        for message, category in caught:
+            warnings.warn(message, category, stacklevel=3)
+    result = FitResult.cat([fit for fit, _ in done])
     if report:
         advance(result.iterations)
     return result
+
+
+def _end_workers(pool: ProcessPoolExecutor) -> None:
+    """End a pool's processes now (a shard failed, or the fit was interrupted), not after
+    their shards."""
+    terminate = getattr(pool, "terminate_workers", None)  # Python 3.14
+    if terminate is not None:
+        terminate()
+    else:
+        for process in list((pool._processes or {}).values()):
+            if process.is_alive():
+                process.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _rows_of(starts: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | None:
@@ -892,28 +939,54 @@ def _rows_of(starts: torch.Tensor | None, rows: torch.Tensor) -> torch.Tensor | 
 
 #: where a worker process of :func:`_fit_in_processes` reports its iterations
 _REPORTS = None
+#: the index among all agents of the first agent of a worker's shard (its errors name agents)
+_FIRST_AGENT = 0
 
 
 def _start_worker(threads: int, flush_denormal: bool, reports: Any) -> None:
     """Set up a worker process: its share of the threads, its parent's denormal flushing and
-    the queue its progress goes to."""
+    the queue its progress goes to. Ctrl-C is its parent's to handle (which ends it), and it
+    ends itself when its parent dies (``kill -9``) rather than wait forever for work."""
     global _REPORTS
     torch.set_num_threads(threads)
     torch.set_flush_denormal(flush_denormal)
     _REPORTS = reports
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+
+        def watch() -> None:
+            parent.join()
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
 
 
 def _fit_shard(
     shard: int,
-    loss: InverseRationalLoss,
+    first_agent: int,
+    sent: bytes,
     trials: TensorDictBase,
     starts: torch.Tensor | None,
     settings: dict,
     report: bool,
-) -> FitResult:
-    """One shard's :func:`fit_theta` in a worker process, reporting each iteration."""
+) -> tuple[FitResult, list[tuple[str, type[Warning]]]]:
+    """One shard's :func:`fit_theta` in a worker process, reporting each iteration; returns
+    it with the warnings it raised (for the parent to raise)."""
+    global _FIRST_AGENT
+    try:
+        loss = pickle.loads(sent)
+    except Exception as error:  # the task's module cannot be imported here
+        raise ValueError(
+            f"workers: a worker process cannot rebuild the loss ({first_line(error)}); "
+            "expected workers=1, or a task importable by module name (module:Class)"
+        ) from None
+    _FIRST_AGENT = first_agent
     progress = (lambda i, _: _REPORTS.put((shard, i))) if report else None
-    return fit_theta(loss, trials, starts=starts, progress=progress, **settings)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit = fit_theta(loss, trials, starts=starts, progress=progress, **settings)
+    return fit, [(str(w.message), w.category) for w in caught]
 
 
 def _held_step(
@@ -1129,7 +1202,8 @@ def _skip_undefined(
     short = ((~undefined).sum(1) < n).nonzero().flatten().tolist()
     if short:
         raise ValueError(
-            f"fit: agent {short[0]}'s log-likelihood is NaN at {int(undefined[short[0]].sum())} "
+            f"fit: agent {short[0] + _FIRST_AGENT}'s log-likelihood is NaN at "
+            f"{int(undefined[short[0]].sum())} "
             f"of its {scores.shape[1]} screened θ, fewer than n_starts={n} left to start from "
             f"(one at {where}): {cause}every θ in its space"
         )
