@@ -1020,7 +1020,7 @@ def _anneal(noise: AdditiveGaussianModule, frames: int) -> None:
         sigma, end = noise.sigma.cpu().numpy(), noise.sigma_end.cpu().numpy()
         for _ in range(frames):  # each step rounds to float32, as TorchRL's
             sigma = np.maximum(end, sigma - rate)
-        noise.sigma.copy_(torch.as_tensor(sigma))
+        noise.sigma.copy_(torch.from_numpy(np.asarray(sigma)))  # from the CPU, any default
 
 
 def _set_lr(optimiser: torch.optim.Optimizer, lr: float) -> None:
