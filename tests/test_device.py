@@ -221,6 +221,12 @@ def test_a_fit_finds_the_device_of_trials_held_without_one():
         got = fit_theta(loss, bare, **settings)
     assert got.theta_hat.device.type == "cpu"
     assert torch.equal(got.theta_hat, expected.theta_hat)
+    # a loss reading the mask under another key: the device is not looked up by "mask"
+    loss.set_keys(mask="valid")
+    renamed = bare.rename_key_("mask", "valid")
+    with torch.device("meta"):
+        got = fit_theta(loss, renamed, **settings)
+    assert torch.equal(got.theta_hat, expected.theta_hat)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")

@@ -727,16 +727,19 @@ def test_exploration_noise_anneals_linearly_over_the_frames_of_the_exploring_pol
     assert sigma.item() == pytest.approx(0.15 - 0.5 * (0.15 - 0.05), abs=1e-4)
 
 
-def test_the_noise_anneals_as_torchrls_step_bit_for_bit():
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_noise_anneals_as_torchrls_step_bit_for_bit(dtype):
     """``_anneal`` replaces TorchRL's per-frame loop and must leave the very σ it leaves (a
-    training run is the same bit for bit), down to sigma_end and no further."""
+    training run is the same bit for bit), down to sigma_end and no further; under a float64
+    default too, where TorchRL's bounds are float64 and its σ float32."""
     from torchrl.modules import AdditiveGaussianModule
 
     spec = Firefly2DModel().action_spec
-    theirs, ours = (
-        AdditiveGaussianModule(spec, sigma_init=0.15, sigma_end=0.05, annealing_num_steps=9999)
-        for _ in range(2)
-    )
+    with default_dtype(dtype):
+        theirs, ours = (
+            AdditiveGaussianModule(spec, sigma_init=0.15, sigma_end=0.05, annealing_num_steps=9999)
+            for _ in range(2)
+        )
     for frames in [256, 1, 17, 1000, 3] * 10:
         theirs.step(frames)
         _anneal(ours, frames)

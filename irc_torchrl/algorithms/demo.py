@@ -127,7 +127,7 @@ def warn_far_from_optimal(
             f"{model.theta_space.format(theta_grid[worst])} (expected at least {NEAR_OPTIMAL}); "
             "its agents there are not near-optimal, so the fit reads them by a wrong policy; "
             "another seed trains another Q",
-            stacklevel=3,
+            stacklevel=4,  # run_demo's caller
         )
 
 
@@ -137,7 +137,7 @@ def _figure_arrays(
     theta_grid: torch.Tensor,
     optimal: torch.Tensor,
     learned: torch.Tensor,
-    gamma: float = 1.0,
+    gamma: float,
 ) -> dict[str, np.ndarray]:
     """What ``q_function.png`` and ``dp_comparison.png`` show (``figures.npz``, from which
     ``irc report`` redraws them): Q at the start of a trial at the default θ, learned and

@@ -18,9 +18,12 @@ __all__ = ["optimal_values", "greedy_returns"]
 
 
 def _inputs(
-    model: Firefly1DModel, theta: torch.Tensor, relative_start: torch.Tensor
+    model: Firefly1DModel, theta: torch.Tensor, relative_start: torch.Tensor, gamma: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """θ ``[n_theta, d]`` and the starts ``[n_start]`` in float64, each checked first."""
+    """θ ``[n_theta, d]`` and the starts ``[n_start]`` in float64, each checked first, and
+    the discount ``gamma``."""
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma: expected a discount in (0, 1], got {gamma}")
     space = model.theta_space
     theta = space.validate(theta.to(torch.float64))
     if theta.ndim != 2:
@@ -44,9 +47,7 @@ def optimal_values(
         theta: agent θ, ``[n_theta, d]``.
         relative_start: initial agent position minus target, ``[n_start]``.
     """
-    theta, relative_start = _inputs(model, theta, relative_start)
-    if not 0 < gamma <= 1:
-        raise ValueError(f"gamma: expected a discount in (0, 1], got {gamma}")
+    theta, relative_start = _inputs(model, theta, relative_start, gamma)
     horizon = model.max_steps
     k = torch.arange(-horizon, horizon + 1, dtype=torch.float64)
     gain = theta[:, model.theta_space.index("g_a")].view(-1, 1, 1)
@@ -79,9 +80,7 @@ def greedy_returns(
 
     The belief is deterministic, so the return (under the agent's own model) is exact.
     """
-    theta, relative_start = _inputs(model, theta, relative_start)
-    if not 0 < gamma <= 1:
-        raise ValueError(f"gamma: expected a discount in (0, 1], got {gamma}")
+    theta, relative_start = _inputs(model, theta, relative_start, gamma)
     n_theta, n_start = theta.shape[0], relative_start.shape[0]
     theta = theta.unsqueeze(1).expand(n_theta, n_start, -1)
     target = -relative_start.view(1, -1, 1).expand(n_theta, n_start, 1)

@@ -1018,8 +1018,8 @@ def _anneal(noise: AdditiveGaussianModule, frames: int) -> None:
     with torch.no_grad():
         rate = ((noise.sigma_init - noise.sigma_end) / noise.annealing_num_steps).cpu().numpy()
         sigma, end = noise.sigma.cpu().numpy(), noise.sigma_end.cpu().numpy()
-        for _ in range(frames):  # each step rounds to float32, as TorchRL's
-            sigma = np.maximum(end, sigma - rate)
+        for _ in range(frames):  # each step rounds to float32, as TorchRL's copy into σ
+            sigma = np.maximum(end, sigma - rate).astype(np.float32)
         noise.sigma.copy_(torch.from_numpy(np.asarray(sigma)))  # from the CPU, any default
 
 
@@ -1270,6 +1270,11 @@ def load_ensemble_critic(
     Returns ``(critic, actor, model)``; the critic is ``Q(b, a, θ)`` of that actor (the kept
     policy may be an earlier one). ``device`` and ``model`` as in :func:`load_ensemble_policy`.
     """
+    if isinstance(device, TaskModel):  # the second argument was the model before `device`
+        raise TypeError(
+            "device: got a TaskModel; load_ensemble_critic's arguments are (source, device, "
+            "model), as load_ensemble_policy's: pass it as model=..."
+        )
     device = resolve_device(str(device))
     with torch.device(device):
         config, model, ckpt = _load(source, ("actor", "loss"), model)

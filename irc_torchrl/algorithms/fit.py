@@ -854,14 +854,7 @@ def _fit_in_processes(
     """:func:`fit_theta` of ``workers`` contiguous shards of the agents, each in a process of
     its own; ``progress`` follows the shard furthest behind. A shard that fails, or an
     interrupt here, ends the other processes at once; a shard's warnings are raised here."""
-    try:  # here, before any process starts, not as a broken pool in a worker
-        sent = pickle.dumps(loss)
-    except Exception as error:
-        raise TypeError(
-            f"workers: the loss cannot be sent to worker processes ({first_line(error)}); "
-            f"expected workers=1, or a task whose class and attributes pickle (a class at "
-            f"the top level of an importable module)"
-        ) from None
+    sent = _sent(loss)
     shards = torch.arange(trials.shape[0]).tensor_split(workers)
     context = multiprocessing.get_context("spawn")  # fork is unsafe once torch's threads run
     reports = context.Queue()
@@ -895,7 +888,7 @@ def _fit_in_processes(
         ]
         while not all(f.done() for f in futures):
             failed = [f for f in futures if f.done() and f.exception() is not None]
-            if failed:  # the first failure is the fit's: the other shards' work is moot
+            if failed:  # a failed shard's error is the fit's (the lowest-numbered of several)
                 raise failed[0].exception()
             try:
                 shard, iteration = reports.get(timeout=0.5)
@@ -910,13 +903,26 @@ def _fit_in_processes(
         _end_workers(pool)
         raise
     pool.shutdown()
-    for _, caught in done:
-        for message, category in caught:
-            warnings.warn(message, category, stacklevel=3)
+    for _, caught in done:  # as the shard raised them, so the caller's filters apply alike
+        for message, category, filename, lineno in caught:
+            warnings.warn_explicit(message, category, filename, lineno)
     result = FitResult.cat([fit for fit, _ in done])
     if report:
         advance(result.iterations)
     return result
+
+
+def _sent(loss: InverseRationalLoss) -> bytes:
+    """``loss`` pickled for the worker processes: refused here, before any process starts,
+    where it cannot be (it failed in a worker, as a broken pool)."""
+    try:
+        return pickle.dumps(loss)
+    except Exception as error:
+        raise TypeError(
+            f"workers: the loss cannot be sent to worker processes ({first_line(error)}); "
+            "expected workers=1, or a task and networks whose classes and attributes pickle "
+            "(classes at the top level of an importable module)"
+        ) from None
 
 
 def _end_workers(pool: ProcessPoolExecutor) -> None:
@@ -970,23 +976,23 @@ def _fit_shard(
     starts: torch.Tensor | None,
     settings: dict,
     report: bool,
-) -> tuple[FitResult, list[tuple[str, type[Warning]]]]:
+) -> tuple[FitResult, list[tuple[str, type[Warning], str, int]]]:
     """One shard's :func:`fit_theta` in a worker process, reporting each iteration; returns
-    it with the warnings it raised (for the parent to raise)."""
+    it with the warnings it raised (message, category, file, line: for the parent to raise)."""
     global _FIRST_AGENT
     try:
         loss = pickle.loads(sent)
     except Exception as error:  # the task's module cannot be imported here
         raise ValueError(
             f"workers: a worker process cannot rebuild the loss ({first_line(error)}); "
-            "expected workers=1, or a task importable by module name (module:Class)"
+            "expected workers=1, or a task and networks importable by module name (not "
+            "defined in __main__ or in a file loaded by its path)"
         ) from None
     _FIRST_AGENT = first_agent
     progress = (lambda i, _: _REPORTS.put((shard, i))) if report else None
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with warnings.catch_warnings(record=True) as caught:  # the worker's filters apply
         fit = fit_theta(loss, trials, starts=starts, progress=progress, **settings)
-    return fit, [(str(w.message), w.category) for w in caught]
+    return fit, [(str(w.message), w.category, w.filename, w.lineno) for w in caught]
 
 
 def _held_step(
@@ -1037,8 +1043,11 @@ def _behind_best(value: torch.Tensor, converged: torch.Tensor, n_starts: int) ->
 
 def _trials_device(trials: TensorDictBase) -> torch.device:
     """Where the trials' tensors live: the TensorDict's device, or (a TensorDict built without
-    one, ``TensorDict({...}, batch_size)`` of CUDA tensors) that of its mask."""
-    return trials.device if trials.device is not None else trials["mask"].device
+    one, ``TensorDict({...}, batch_size)`` of CUDA tensors) that of its first tensor (the
+    loss's keys may have been renamed)."""
+    if trials.device is not None:
+        return trials.device
+    return next(iter(trials.values(include_nested=True, leaves_only=True))).device
 
 
 def _on_bound(u: torch.Tensor) -> torch.Tensor:

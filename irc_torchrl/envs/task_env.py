@@ -75,7 +75,8 @@ class TaskEnv(EnvBase):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        cls.__signature__ = _constructor_signature(cls)
+        if "__signature__" not in cls.__dict__:  # a subclass's own stands
+            cls.__signature__ = _constructor_signature(cls)
 
     def _check_theta(self, theta: torch.Tensor, field: str) -> torch.Tensor:
         theta = torch.as_tensor(theta, dtype=torch.float32, device=self.device)
