@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import re
 import signal
@@ -765,6 +766,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _RECEIVED.clear()
     for number, _ in handled:
         signal.signal(number, _stop)
+    torchrl_logger = logging.getLogger("torchrl")
+    level = torchrl_logger.level
+    if "RL_LOGGING_LEVEL" not in os.environ:  # TorchRL's INFO lines went to irc's stdout
+        torchrl_logger.setLevel(logging.WARNING)
     try:
         _check_arguments(args)
         with _held(args):
@@ -781,6 +786,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     finally:
         warnings.formatwarning = formatwarning
+        torchrl_logger.setLevel(level)
         for number, default in handled:
             signal.signal(number, default)
 

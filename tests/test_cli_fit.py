@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import logging
 import os
 import re
 import shutil
@@ -295,9 +296,18 @@ def test_report_skips_the_q_figure_when_its_checkpoint_is_gone(fitted, tmp_path)
     assert not (tmp_path / "q_function.png").exists()
 
 
-def test_report_draws_training_curves(tmp_path, capsys):
+def test_report_draws_training_curves(tmp_path, capsys, monkeypatch):
     settings = [o for o in TINY_TRAIN if not o.startswith("logger=")]  # the CSV logger: logs/
-    assert main(["train", "--out", str(tmp_path), "--quiet", *settings]) == 0
+    logged = []  # TorchRL's INFO lines (the buffer's size) went to irc's stdout
+    handler = logging.Handler()
+    handler.emit = logged.append
+    monkeypatch.delenv("RL_LOGGING_LEVEL", raising=False)
+    logging.getLogger("torchrl").addHandler(handler)
+    try:
+        assert main(["train", "--out", str(tmp_path), "--quiet", *settings]) == 0
+    finally:
+        logging.getLogger("torchrl").removeHandler(handler)
+    assert [record.getMessage() for record in logged if record.levelno < logging.WARNING] == []
     trained = capsys.readouterr().out.splitlines()[0]
     assert main(["report", str(tmp_path)]) == 0
     assert capsys.readouterr().out.splitlines()[0] == trained  # "best policy: …"
