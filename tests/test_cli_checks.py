@@ -311,7 +311,7 @@ def test_the_demos_q_figure_reads_q_at_the_start_of_a_trial_at_the_offset_it_plo
         torch.tensor([[1.0, 2.0], [0.0, 4.0]]),
     )
     grid = torch.tensor([[0.7, 1.0], [1.3, 1.0]], dtype=torch.float64)
-    arrays = demo._figure_arrays(model, Features(), grid, optimal, learned)
+    arrays = demo._figure_arrays(model, Features(), grid, optimal, learned, gamma=1.0)
     relative = arrays["q_relative"]
     assert relative[0] == -model.target_range and relative[-1] == model.target_range
     np.testing.assert_allclose(arrays["q_learned"][:, 0], relative / model.target_range, atol=1e-6)
