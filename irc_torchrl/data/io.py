@@ -124,7 +124,8 @@ def read_trials(
     # an NWB file's times are seconds by definition: no unit of its own to declare
     seconds = reader is _read_nwb
     trials = _on_model_grid(trials, model, source, time_column, trial_column, resample, seconds)
-    held = _pack(trials, model, time_column, trial_column)
+    with torch.device("cpu"):  # read onto the CPU whatever torch's default device
+        held = _pack(trials, model, time_column, trial_column)
     check_stops(held, model, source)  # before validate_trials: by the file and trial number
     validate_trials(held, model)
     check_kinematics(held, model, source)
@@ -550,14 +551,14 @@ def _pack(
             np.stack([np.pad(t[n], (0, steps - len(t[n])), mode="edge") for n in names], -1)
             for _, t in trials
         ]
-        return torch.as_tensor(np.stack(rows), dtype=dtype, device="cpu")
+        return torch.as_tensor(np.stack(rows), dtype=dtype)
 
     theta_names = [THETA_PREFIX + n for n in model.theta_space.names]
     default = model.theta_space.default(torch.float64).numpy()
     for _, trial in trials:
         for name, value in zip(theta_names, default, strict=True):
             trial.setdefault(name, np.full(len(trial[time_column]), value))
-    lengths = torch.tensor([len(t[time_column]) for _, t in trials], device="cpu")
+    lengths = torch.tensor([len(t[time_column]) for _, t in trials])
     spec = model.action_spec
     if isinstance(spec, Categorical):
         action = stack(model.action_names, torch.int64)[..., 0]
@@ -567,16 +568,14 @@ def _pack(
     labels = [label for label, _ in trials]
     # a label like 20240501.001 (session.trial) needs float64 to stay itself
     numbers = torch.tensor(
-        labels,
-        dtype=torch.float64 if any(isinstance(n, float) for n in labels) else torch.int64,
-        device="cpu",
+        labels, dtype=torch.float64 if any(isinstance(n, float) for n in labels) else torch.int64
     )
     return TensorDict(
         {
             "state": stack(model.state_names, torch.float32),
             "action": action,
             "target": stack(model.target_names, torch.float32),
-            "mask": torch.arange(steps, device="cpu") < lengths.unsqueeze(-1),
+            "mask": torch.arange(steps) < lengths.unsqueeze(-1),
             "task_theta": stack(theta_names, torch.float32),
             "time": stack([time_column], torch.float32)[..., 0],
             "trial": numbers.unsqueeze(-1).expand(-1, steps),
