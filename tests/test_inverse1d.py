@@ -938,6 +938,22 @@ def test_the_1d_demo_and_recovery_check_their_settings_when_called_from_python(
         recover_agents(firefly1d_model, trained_q, AgentsConfig(), FitConfig(max_iter=0), 0)
 
 
+def _still_trials(model: Firefly1DModel, action: torch.Tensor) -> TensorDict:
+    """One agent's trials ``action [1, n, T]`` (all steps recorded) as held trials, the agent
+    at 0 and the target 5 away in the default world: only the actions matter."""
+    shape = action.shape
+    return TensorDict(
+        {
+            "state": torch.zeros(*shape, 1),
+            "action": action,
+            "target": torch.full((*shape, 1), 5.0),
+            "mask": torch.ones(shape, dtype=torch.bool),
+            "task_theta": model.theta_space.default().expand(*shape, -1).clone(),
+        },
+        batch_size=shape,
+    )
+
+
 class _LeftRuledOutAfterTheFirstStep(nn.Module):
     """Q = (-100 · step, 0, 0): the three actions alike at step 0, LEFT ruled out after."""
 
@@ -954,17 +970,7 @@ def test_the_action_at_step_t_is_scored_with_the_features_of_step_t():
         model, BoltzmannActionModel(_LeftRuledOutAfterTheFirstStep(), temperature=1.0)
     )
     theta = model.theta_space.default(torch.float64).unsqueeze(0)
-    steps = 3
-    trials = TensorDict(
-        {
-            "state": torch.zeros(1, 1, steps, 1),
-            "action": torch.tensor([[[0, 2, 2]]]),  # LEFT at step 0 only
-            "target": torch.full((1, 1, steps, 1), 5.0),
-            "mask": torch.ones(1, 1, steps, dtype=torch.bool),
-            "task_theta": theta.float().expand(1, 1, steps, -1).clone(),
-        },
-        batch_size=[1, 1, steps],
-    )
+    trials = _still_trials(model, torch.tensor([[[LEFT, RIGHT, RIGHT]]]))  # LEFT at step 0 only
     log_l = loss.log_likelihood(theta, torch.zeros(1, 1, dtype=torch.float64), trials)  # τ = 1
     # step 0: one of three alike; steps 1 and 2: RIGHT, one of the two left (LEFT's e^-100 aside)
     assert float(log_l) == pytest.approx(math.log(1 / 3) + 2 * math.log(1 / 2), abs=1e-6)
@@ -988,16 +994,7 @@ def _gain_only_fit() -> tuple[InverseRationalLoss, TensorDict, FitResult]:
     generator = torch.Generator().manual_seed(0)
     action = torch.where(torch.rand(1, 24, 3, generator=generator) < 0.3, LEFT, RIGHT)
     action[..., -1] = STOP
-    trials = TensorDict(
-        {
-            "state": torch.zeros(1, 24, 3, 1),
-            "action": action,
-            "target": torch.full((1, 24, 3, 1), 5.0),
-            "mask": torch.ones(1, 24, 3, dtype=torch.bool),
-            "task_theta": model.theta_space.default().expand(1, 24, 3, -1).clone(),
-        },
-        batch_size=[1, 24, 3],
-    )
+    trials = _still_trials(model, action)
     loss = InverseRationalLoss(model, BoltzmannActionModel(_GainOnly(), temperature=1.0))
     result = fit_theta(loss, trials, n_starts=1, n_screen=4, max_iter=40, curvature="bfgs")
     return loss, trials, result
