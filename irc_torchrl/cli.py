@@ -295,10 +295,11 @@ def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]
 
 
 def _report(args: argparse.Namespace) -> int:
-    from irc_torchrl.plots import report_run
+    from irc_torchrl.plots import read_summary, report_run
 
-    drawn = report_run(args.folder)
-    table = _table(json.loads((Path(args.folder) / "summary.json").read_text()))
+    summary = read_summary(args.folder)
+    drawn = report_run(args.folder, summary)
+    table = _table(summary)
     if table:
         print(table)
     for path in drawn:
@@ -312,13 +313,13 @@ def _table(summary: dict[str, Any]) -> str | None:
     from irc_torchrl.algorithms.demo import format_summary
     from irc_torchrl.algorithms.recordings import format_fit
     from irc_torchrl.algorithms.recover2d import format_recovery
+    from irc_torchrl.plots import is_recovery
 
     command = summary.get("command")
-    recovered = command in ("recover", "demo") and "methods" in summary  # the 2D demo's too
     try:
         if command == "train":
             return _best_policy(summary["best"])
-        if recovered:
+        if is_recovery(summary):  # the 2D demo's too
             return format_recovery(summary)
         if command in ("fit", "demo"):
             return (format_fit if command == "fit" else format_summary)(summary)

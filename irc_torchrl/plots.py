@@ -405,7 +405,28 @@ def _agent_figures(
     return plot_estimates(dict(part), path.with_name(f"estimates{path.name}"), units)
 
 
-def report_run(folder: str | Path) -> list[Path]:
+def read_summary(folder: str | Path) -> dict:
+    """A run folder's ``summary.json``, refused in one line where it is missing, not JSON or
+    not a JSON object."""
+    path = Path(folder) / "summary.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"report: no summary.json in {folder}")
+    try:
+        summary = json.loads(path.read_text())
+    except ValueError as error:
+        raise ValueError(f"report: {path} is not valid JSON ({error})") from None
+    if not isinstance(summary, dict):
+        raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
+    return summary
+
+
+def is_recovery(summary: Mapping) -> bool:
+    """Whether ``summary`` is a recovery experiment's (``irc recover``, ``irc demo --task
+    firefly2d``): agents with known θ* fitted per method, their trials kept in ``trials/``."""
+    return summary.get("command") in ("recover", "demo") and bool(summary.get("methods"))
+
+
+def report_run(folder: str | Path, summary: dict | None = None) -> list[Path]:
     """Draw the figures of a run folder from its ``summary.json``; returns the PNGs written.
 
     Agents (``irc fit``, ``recover``, ``demo``): θ̂ against θ* with 95% intervals for the agents
@@ -416,19 +437,13 @@ def report_run(folder: str | Path) -> list[Path]:
     demo --task firefly2d``): agent 0's recovered beliefs against its own, per method;
     ``figures.npz`` (``irc demo``, 1D): Q against the exact DP's, and the DP comparison.
     ``history`` (``irc train``): training curves, with the losses logged under ``logs/``.
+    ``summary``: the folder's, where the caller has read it already (:func:`read_summary`).
     """
     folder = Path(folder)
     path = folder / "summary.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"report: no summary.json in {folder}")
-    try:
-        summary = json.loads(path.read_text())
-    except ValueError as error:
-        raise ValueError(f"report: {path} is not valid JSON ({error})") from None
-    if not isinstance(summary, dict):
-        raise ValueError(f"report: {path} holds a JSON {type(summary).__name__}; {_EXPECTED}")
+    summary = read_summary(folder) if summary is None else summary
     beliefs, figures = _archive(folder / "beliefs.npz"), _archive(folder / "figures.npz")
-    recovered = summary.get("command") in ("recover", "demo") and summary.get("methods")
+    recovered = is_recovery(summary)
     demo_1d = summary.get("command") == "demo" and not recovered
     for lacking, name, figures_of in (
         (summary.get("command") == "fit" and beliefs is None, "beliefs.npz", "belief"),
