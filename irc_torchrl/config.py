@@ -224,9 +224,9 @@ class RecordingFitConfig:
     #: number of trials) and refitted the same way, to calibrate the intervals
     #: (:mod:`~irc_torchrl.algorithms.calibration`; 0: none). Each costs about the fit again
     calibrate: int = 0
-    #: how each parameter's calibration factor reads its tail: "shrunk" toward all
-    #: parameters' by as much as it is noise, or its "own" 95% quantile alone
-    calibration_tail: str = "shrunk"
+    #: how each parameter's calibration factor reads its tail: its "own" 95% quantile, or
+    #: "shrunk" toward all parameters' by as much as it is noise
+    calibration_tail: str = "own"
     #: the precision the frozen actor runs in inside the float64 likelihood (see
     #: ``actor_dtype`` of ``irc recover``)
     actor_dtype: str = "float32"

@@ -131,9 +131,10 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
         for b in FREE:
             assert correlation[a][b] == pytest.approx(correlation[b][a])
             assert -1 <= correlation[a][b] <= 1
-    # uncalibrated intervals say so, and how to calibrate them
+    # uncalibrated intervals say so, and how many datasets per recording calibrate them
+    # (about 40 refits per parameter: this one recording's 40)
     assert "95% intervals from the fit's likelihood alone, not calibrated" in table
-    assert "(docs/recovery2d.md); calibrate=2 calibrates them by simulation" in table
+    assert "(docs/recovery2d.md); calibrate=40 calibrates them by simulation" in table
     # irc fit's default, for recordings of real agents: the lapse rate fitted, from 0.01; this
     # agent never lapses, and its rate falls (measured: 0.0030, interval up to 0.022)
     assert summary["config"]["lapse"] == 0.01 and summary["config"]["fit_lapse"]
@@ -180,7 +181,8 @@ def test_fit_names_the_trials_its_theta_explains_worst(simulated, tmp_path):
 
 def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulated, tmp_path):
     # calibrate=1: a recording simulated at θ̂ and refitted; each interval is the fit's own
-    # scaled about θ̂ (in the fit's coordinates) by its parameter's factor
+    # scaled about θ̂ (in the fit's coordinates) by its parameter's factor, and one refit is
+    # too few to read a 95% quantile from (19 are the fewest): no factor, no interval
     args = ["fit", str(simulated / "agent0.csv"), "--out", str(tmp_path), "--quiet"]
     options = ["calibrate=1", "calibration_tail=own", "n_screen=2", "n_starts=1", "max_iter=5"]
     assert main([*args, "--method", "map", "--free", ",".join(FREE), *options]) == 0
@@ -213,7 +215,11 @@ def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulate
     table = format_fit(summary)
     assert "calibrated 95% CI" in table and "intervals calibrated on 1 simulated" in table
     assert "not calibrated" not in table
-    assert "rests on 1 refit(s) only; about 40 pin a 95% quantile: calibrate=40)" in table
+    assert all(factor is None for factor in calibration["factor"].values())
+    assert (
+        "rests on 1 refit(s) only; about 40 pin a 95% quantile, and with fewer than 19 a "
+        "parameter gets none: calibrate=40)"
+    ) in table
     assert "truth inside the calibrated 95% interval" in table
 
 

@@ -481,7 +481,7 @@ def test_recover_config_yaml_equals_the_embedded_default_and_checks_keys():
         load_recovery2d_config(None, ["motor_noise=0"])
     with pytest.raises(ValueError, match="components: expected 1 or more than the belief's 5"):
         load_recovery2d_config(None, ["components=3"])
-    assert load_recovery2d_config(None, ["calibration_tail=own"]).calibration_tail == "own"
+    assert load_recovery2d_config(None, ["calibration_tail=shrunk"]).calibration_tail == "shrunk"
 
 
 def test_belief_agreement_pools_x_and_y_and_correlates_errors_from_the_true_state():

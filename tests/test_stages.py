@@ -201,7 +201,7 @@ def test_a_fit_of_recordings_is_keyed_by_what_its_fits_depend_on(tmp_path):
 
     same = [
         key(RecordingFitConfig(particles=1000)),
-        key(RecordingFitConfig(calibrate=3, calibration_tail="own")),
+        key(RecordingFitConfig(calibrate=3, calibration_tail="shrunk")),
     ]
     copy = tmp_path / "copy.pt"
     copy.write_bytes(checkpoint.read_bytes() + b"\0")

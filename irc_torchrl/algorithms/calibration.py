@@ -10,18 +10,17 @@ intervals cover (bootstrap-t, one factor per parameter pooled over agents). Appl
 real fits it calibrates them to the extent the pivot's spread at θ̂ is its spread at the
 truth, which is what a simulation of the recovery can check.
 
-A 95% quantile read off one parameter's refits alone rests on its few largest (4 of 80 for
-40 agents × 2 datasets): over three draws of the 2D recovery one parameter's factor ranged
-1.27–2.12. The factor is its median size (where every refit counts) times its tail (the 95%
-quantile over the median), and by default each parameter's tail is shrunk toward the tail all
-parameters share by as much as the refits say it is imprecise (empirical Bayes: the spread of
-the tails against their bootstrap variances). On those draws the marginal estimator's tails
-varied by no more than their noise (4.0–7.3 per parameter, the real data's 3.4–5.4); over
-five draws (200 agents, two drawn after the rule was chosen) its calibrated coverage per draw
-and parameter lay inside 0.90–0.98 in 36 of 40 cells, against 33 with each parameter's own
-quantile; with the gated outer update 33 against 32, every parameter inside over the 200
-agents with either; the shrunk tails rerun at the version of 2026-12-06 29 of 40, g_w just
-over at 0.985 (docs/recovery2d.md).
+Each factor is read off its parameter's own refits, at the rank a new pivot exceeds 5% of the
+time whatever their number (:func:`_quantile_and_scale`): on 80 refits (40 agents × 2
+datasets) it rests on the few largest, so it is noisy (one parameter's ranged 1.27–2.12 over
+three draws of the 2D recovery), yet on average right for every parameter. ``tail="shrunk"``
+(the default until 2026-12-07) reads it as its median size times its tail (the 95% quantile
+over the median) shrunk toward the tail all parameters share by as much as the refits say it
+is imprecise (empirical Bayes over a bootstrap of the agents). That steadies the factors
+where every parameter's pivots have one shape, but pulls a parameter whose tail is lighter or
+heavier than the rest's toward theirs: on simulated pivots of two such parameters it covered
+them 0.91, and in the 2D recovery g_w over-covered (1.000 on three draws of five, 0.985 over
+200 agents) where its own tail covers 0.950 (docs/recovery2d.md).
 """
 
 from __future__ import annotations
@@ -44,6 +43,7 @@ from irc_torchrl.objectives.fisher import Z95, narrow
 from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
+    "FEWEST_REFITS",
     "MIN_REFITS",
     "TAILS",
     "Calibration",
@@ -59,8 +59,11 @@ _EDGE = 40.0
 #: refits per parameter below which its factor rests on too few (its own 95% quantile on its
 #: last one or two)
 MIN_REFITS = 40
+#: refits per parameter without which no factor is given: the fewest whose largest is a
+#: 95% quantile, exceeded by a new pivot 1/(m + 1) = 5% of the time
+FEWEST_REFITS = 19
 #: how a parameter's tail (the 95% quantile of |pivot| over its median) is read: its own shrunk
-#: toward all parameters' by as much as it is noise, or its own alone
+#: toward all parameters' by as much as it is noise, or its own alone (the default)
 TAILS = ("shrunk", "own")
 #: bootstrap resamples of the agents that measure how precisely each parameter's tail is read
 _RESAMPLES = 200
@@ -107,14 +110,13 @@ class Calibration:
     factor: torch.Tensor
     pivots: torch.Tensor
     #: how the factors' tails were read (one of :data:`TAILS`)
-    tail: str = "shrunk"
+    tail: str = "own"
 
     @classmethod
-    def from_pivots(
-        cls, names: list[str], pivots: torch.Tensor, tail: str = "shrunk"
-    ) -> Calibration:
+    def from_pivots(cls, names: list[str], pivots: torch.Tensor, tail: str = "own") -> Calibration:
         """The factors from refits' pivots ``[n_datasets, n_agents, k]``: per parameter the 95%
-        quantile of ``|pivot|`` over datasets and agents, over Z95. ``tail="own"`` reads it off
+        quantile of ``|pivot|`` over datasets and agents (at the rank a new pivot exceeds 5% of
+        the time; none below :data:`FEWEST_REFITS` refits), over Z95. ``tail="own"`` reads it off
         the parameter's refits alone; ``"shrunk"`` as its median (of its nonzero ones: a refit
         exactly on θ̂, both on a bound, has no scale) times its tail, the quantile over the
         median, shrunk toward the tail of all parameters (:func:`_shrink_tails`). A parameter
@@ -213,11 +215,25 @@ def _check_tail(tail: str) -> None:
 
 
 def _quantile_and_scale(size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per parameter of ``|pivot|`` ``[..., n, k]`` (NaN: no interval), its 95% quantile (an
-    infinite pivot counted as the largest float) and its median over the nonzero ones,
-    ``[..., k]`` each."""
-    quantile = torch.nanquantile(size.clamp_max(torch.finfo(size.dtype).max), 0.95, dim=-2)
-    return quantile, torch.nanmedian(size.where(size > 0, torch.nan), dim=-2).values
+    """Per parameter of ``|pivot|`` ``[..., n, k]`` (NaN: no interval), its 95% quantile and
+    its median over the nonzero ones, ``[..., k]`` each.
+
+    The quantile is read at rank 0.95 (m + 1) of the parameter's m refits, between the two
+    nearest (Weibull's; an infinite pivot counted as the largest float): the k-th smallest of
+    m is exceeded by a new pivot exchangeable with them k/(m + 1) of the time, so this one 5%
+    of the time at any m, where the quantile interpolated at rank 0.95 (m − 1) + 1 is exceeded
+    6% at m = 80 (40 agents × 2 datasets), 11% at m = 12 and 34% at m = 2 (|N(0, 1)|
+    pivots). Below :data:`FEWEST_REFITS` refits that rank lies past the largest: infinite.
+    """
+    m = (~size.isnan()).sum(-2, keepdim=True)
+    rank = 95 * (m + 1)  # in hundredths
+    ordered = size.clamp_max(torch.finfo(size.dtype).max).sort(dim=-2).values  # NaN last
+    below = (rank // 100 - 1).clamp(0, size.shape[-2] - 1)
+    low = ordered.gather(-2, below)
+    high = ordered.gather(-2, (below + 1).clamp_max(size.shape[-2] - 1))
+    quantile = low + (rank % 100) / 100 * (high - low)
+    quantile = torch.where(rank <= 100 * m, quantile, torch.inf).squeeze(-2)
+    return quantile, torch.nanquantile(size.where(size > 0, torch.nan), 0.5, dim=-2)
 
 
 def _shrink_tails(size: torch.Tensor, log_tail: torch.Tensor) -> torch.Tensor:
@@ -273,9 +289,14 @@ def format_factors(calibration: dict) -> str:
     fewest = min((n for n in calibration.get("refits", {}).values() if n), default=MIN_REFITS)
     if fewest < MIN_REFITS:
         enough = math.ceil(calibration["n_datasets"] * MIN_REFITS / fewest)
+        needed = (
+            f", and with fewer than {FEWEST_REFITS} a parameter gets none"
+            if fewest < FEWEST_REFITS
+            else ""
+        )
         text += (
-            f" (a factor rests on {fewest} refit(s) only; about {MIN_REFITS} pin a 95% quantile: "
-            f"calibrate={enough})"
+            f" (a factor rests on {fewest} refit(s) only; about {MIN_REFITS} pin a 95% quantile"
+            f"{needed}: calibrate={enough})"
         )
     return text
 
@@ -306,7 +327,7 @@ def calibrate_intervals(
     theta_generating: torch.Tensor,
     refit: Callable[[int], dict[str, FitResult]],
     n_datasets: int,
-    tail: str = "shrunk",
+    tail: str = "own",
 ) -> dict[str, Calibration]:
     """One :class:`Calibration` per estimator from ``n_datasets`` simulated datasets.
 

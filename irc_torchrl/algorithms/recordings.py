@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 import irc_torchrl
 from irc_torchrl.algorithms.calibration import (
+    MIN_REFITS,
     Calibration,
     agent_intervals,
     calibrate_intervals,
@@ -863,10 +864,11 @@ def format_fit(summary: dict[str, Any]) -> str:
                 f"dataset(s) per recording, scaled by {format_factors(calibration)}"
             )
         else:
+            enough = math.ceil(MIN_REFITS / len(part["agents"]))
             lines.append(
                 f"{method}: 95% intervals from the fit's likelihood alone, not calibrated: "
                 "on simulated agents such intervals hold the truth less often than 95% "
-                "(docs/recovery2d.md); calibrate=2 calibrates them by simulation"
+                f"(docs/recovery2d.md); calibrate={enough} calibrates them by simulation"
             )
         for key, what in (("parameters", ""), ("calibrated_parameters", "calibrated ")):
             if key in part:

@@ -136,12 +136,11 @@ class Recovery2DConfig:
     #: fitting time; without it the 2D intervals are too narrow for some agents (raw coverage
     #: 0.70–1.00 per parameter and draw, 0.820–0.900 per parameter over five draws)
     calibrate: int = 2
-    #: how each parameter's calibration factor reads its tail: "shrunk" toward all
-    #: parameters' by as much as it is noise (over five draws 29 of 40 (draw, parameter)
-    #: cells inside 0.90–0.98 at the version of 2026-12-06, 33 at the gated outer update's
-    #: and 36 before it), or its "own" 95% quantile alone (32 of 40 at the gated update's;
-    #: 33 before)
-    calibration_tail: str = "shrunk"
+    #: how each parameter's calibration factor reads its tail: its "own" 95% quantile (a new
+    #: pivot beyond it 5% of the time, whatever the other parameters' tails), or "shrunk"
+    #: toward all parameters' by as much as it is noise (which pulls a lighter or heavier
+    #: tail than the rest toward theirs: docs/recovery2d.md)
+    calibration_tail: str = "own"
     #: the precision the frozen actor runs in inside the float64 likelihood: "float32" makes
     #: the recovery about 1.3× faster, with the same intervals at a given θ (different fits:
     #: each estimator's path through the rugged likelihood changes) and calibrated coverage
