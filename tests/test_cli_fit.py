@@ -367,7 +367,7 @@ def test_report_of_a_folder_without_summary_exits_2(tmp_path, capsys):
         (["fit", "FILE", "components=0"], "components must be positive"),
         (["fit", "FILE", "workers=0"], "workers must be positive, got 0"),
         (["recover", "fit.workers=-2"], "fit.workers must be positive, got -2"),
-        (["recover", "n_trials=9"], "fit.covariance: 'sandwich' needs at least as many trials"),
+        (["recover", "n_trials=10"], "fit.covariance: 'sandwich' needs more trials per agent"),
         (["recover", "n_trials=9"], "has 9; expected fit.covariance=hessian for so few trials"),
         (["fit", "FILE", "components=4"], "components: expected 1 or more than the belief's 5"),
         (["fit", "FILE", "theta.sigma_pos=0.05"], "holds sigma_pos fixed at 0"),

@@ -339,3 +339,21 @@ def test_a_list_override_is_cast_element_by_element():
     assert hidden == [32, 16] and all(type(width) is int for width in hidden)
     with pytest.raises(ValueError, match=r"ddpg.hidden\[1\]=True is not a valid int"):
         load_firefly2d_config(overrides=["ddpg.hidden=[32, true]"])
+
+
+def test_the_1d_demo_refuses_a_sandwich_with_too_few_trials_before_training(
+    monkeypatch, tmp_path, capsys
+):
+    """3 trials per agent for 2 θ coordinates and the temperature: the sandwich's middle is
+    singular. Refused naming the demo's own setting before Q-iteration (it failed after 75 s
+    of training and simulation, naming ``covariance``)."""
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("Q-iteration ran before the error")
+
+    monkeypatch.setattr("irc_torchrl.algorithms.demo.train_factorised_q", no_work)
+    argv = ["demo", "--out", str(tmp_path), "--quiet", "agents.n_trials=3"]
+    assert main([*argv, "fit.covariance=sandwich"]) == 2
+    err = capsys.readouterr().err
+    assert "fit.covariance: 'sandwich' needs more trials per agent than fitted coordinates " in err
+    assert "(3: 2 of θ, 1 nuisance); agent 0 has 3; expected fit.covariance=hessian" in err

@@ -436,8 +436,8 @@ def test_bad_fit_arguments_are_clear_errors_before_any_work(shipped, monkeypatch
     # 3 trials cannot estimate the spread of 10 coordinates' scores
     with pytest.raises(
         ValueError,
-        match=r"covariance: 'sandwich' needs at least as many trials per agent as fitted "
-        r"coordinates \(10: 8 of θ, 2 nuisance\); agent 0 has 3; expected covariance=hessian for",
+        match=r"covariance: 'sandwich' needs more trials per agent than fitted coordinates "
+        r"\(10: 8 of θ, 2 nuisance\); agent 0 has 3; expected covariance=hessian for",
     ):
         fit_theta(loss, held, covariance="sandwich")
     with pytest.raises(ValueError, match=r"starts: expected one θ per agent, \[1, 9\]"):

@@ -1059,9 +1059,9 @@ def test_nuisance_intervals_take_the_inverse_informations_diagonal_not_its_inver
     torch.testing.assert_close(torch.cat([low, high], -1), expected, rtol=1e-6, atol=0)
 
 
-def test_the_sandwich_needs_as_many_trials_as_theta_and_nuisance_coordinates():
-    """Its middle is one outer product of scores per trial: 9 trials for 8 θ coordinates and 2
-    nuisance ones leave it singular."""
-    check_sandwich(torch.tensor([10, 12]), 8, 2)
-    with pytest.raises(ValueError, match="covariance"):
-        check_sandwich(torch.tensor([12, 9]), 8, 2)
+def test_the_sandwich_needs_more_trials_than_theta_and_nuisance_coordinates():
+    """Its middle is one outer product of scores per trial, which sum to zero at a maximum: 10
+    trials for 8 θ coordinates and 2 nuisance ones leave it singular."""
+    check_sandwich(torch.tensor([11, 12]), 8, 2)
+    with pytest.raises(ValueError, match="covariance: 'sandwich' needs more trials"):
+        check_sandwich(torch.tensor([12, 10]), 8, 2)

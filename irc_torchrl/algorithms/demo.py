@@ -18,12 +18,14 @@ import yaml
 from tqdm.auto import tqdm
 
 from irc_torchrl.algorithms.dp import greedy_returns, optimal_values
+from irc_torchrl.algorithms.fit import check_sandwich
 from irc_torchrl.algorithms.qiteration import train_factorised_q
 from irc_torchrl.algorithms.recovery import format_parameters, recover_agents
 from irc_torchrl.algorithms.runtime import finish, torch_settings
 from irc_torchrl.config import Firefly1DConfig, config_to_dict
 from irc_torchrl.data.files import staged, write_json, write_npz, write_text
 from irc_torchrl.envs.firefly1d import Firefly1DModel
+from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.plots import demo_figures, plot_recovery
 
 __all__ = ["run_demo", "dp_comparison", "format_summary"]
@@ -67,6 +69,14 @@ def run_demo(config: Firefly1DConfig, out: str | Path, show_progress: bool = Tru
 
 def _run_demo(config: Firefly1DConfig, out: Path, show_progress: bool) -> dict:
     model = Firefly1DModel()
+    if config.fit.covariance == "sandwich":  # refused before Q-iteration, not after it
+        n_nuisance = len(BoltzmannActionModel.nuisance_bounded)
+        check_sandwich(
+            torch.tensor([config.agents.n_trials]),
+            len(model.theta_space.free_names),
+            n_nuisance,
+            "fit.covariance",
+        )
     start = time.perf_counter()
     with tqdm(
         total=config.q_iteration.rounds,

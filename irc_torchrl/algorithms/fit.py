@@ -489,19 +489,20 @@ def check_sandwich(
     field: str = "covariance",
     agents: Sequence[str] | None = None,
 ) -> None:
-    """Refuse the sandwich covariance where an agent has fewer trials (``per_agent``, ``[A]``)
-    than fitted coordinates (``k`` of θ, ``n_nuisance``): its middle, one outer product of
-    scores per trial, is then singular, and the intervals would claim some combination of the
-    parameters known exactly. The error names the setting ``field`` and the agent by its
-    label in ``agents`` (default ``agent i``)."""
+    """Refuse the sandwich covariance where an agent has no more trials (``per_agent``,
+    ``[A]``) than fitted coordinates (``k`` of θ, ``n_nuisance``): its middle, one outer
+    product of scores per trial, is then singular (at a maximum the trials' scores sum to
+    zero, so n trials span n − 1 directions), and the intervals would claim some combination
+    of the parameters known exactly. The error names the setting ``field`` and the agent by
+    its label in ``agents`` (default ``agent i``)."""
     fewest = int(per_agent.min())
-    if fewest < k + n_nuisance:
+    if fewest <= k + n_nuisance:
         i = int(per_agent.argmin())
         agent = f"agent {i}" if agents is None else agents[i]
         raise ValueError(
-            f"{field}: 'sandwich' needs at least as many trials per agent as fitted "
-            f"coordinates ({k + n_nuisance}: {k} of θ, {n_nuisance} nuisance); {agent} has "
-            f"{fewest}; expected {field}=hessian for so few trials"
+            f"{field}: 'sandwich' needs more trials per agent than fitted coordinates "
+            f"({k + n_nuisance}: {k} of θ, {n_nuisance} nuisance); {agent} has {fewest}; "
+            f"expected {field}=hessian for so few trials"
         )
 
 
