@@ -33,12 +33,12 @@ def _demo(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.demo import format_summary, run_demo
     from irc_torchrl.config import load_config
 
-    overrides = [*args.overrides, f"seed={args.seed}"] if args.seed is not None else args.overrides
+    options = _option_settings(args, "seed")
     if args.task == "firefly2d":
         from irc_torchrl.algorithms.recover2d import DEMO_OVERRIDES
 
-        return _run_recovery(args.config, [*DEMO_OVERRIDES, *overrides], args)
-    config = load_config(args.config, overrides)
+        return _run_recovery(args.config, [*DEMO_OVERRIDES, *args.overrides], args, options)
+    config = load_config(args.config, args.overrides, options)
     summary = run_demo(config, args.out, show_progress=not args.quiet)
     print(format_summary(summary))
     print(
@@ -49,20 +49,28 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _recover(args: argparse.Namespace) -> int:
-    given = {"seed": args.seed, "device": args.device, "checkpoint": args.checkpoint}
-    overrides = [*args.overrides, *(f"{k}={v}" for k, v in given.items() if v is not None)]
-    return _run_recovery(args.config, overrides, args)
+    options = _option_settings(args, "seed", "device", "checkpoint")
+    return _run_recovery(args.config, args.overrides, args, options)
+
+
+def _option_settings(args: argparse.Namespace, *keys: str) -> dict[str, Any]:
+    """The config settings among ``keys`` that ``args``' options give (``--seed 3``: ``seed``),
+    their values as given: a path or a device name is not read as YAML (``#`` a comment)."""
+    return {key: getattr(args, key) for key in keys if getattr(args, key) is not None}
 
 
 def _run_recovery(
-    config_path: str | None, overrides: Sequence[str], args: argparse.Namespace
+    config_path: str | None,
+    overrides: Sequence[str],
+    args: argparse.Namespace,
+    options: dict[str, Any],
 ) -> int:
     from irc_torchrl.algorithms.recover2d import format_recovery, run_recovery
     from irc_torchrl.config import load_recovery2d_config
 
     spec = getattr(args, "model", None)  # `irc demo` recovers the firefly's agents only
     model = _task_model(spec)
-    config = load_recovery2d_config(config_path, overrides, model)
+    config = load_recovery2d_config(config_path, overrides, model, options)
     _check_policy(config.checkpoint, model)
     _check_sendable(spec, "fit.workers", config.fit.workers)
     resume = getattr(args, "resume", None)  # `irc demo` runs whole, in minutes: keeps none
@@ -106,7 +114,6 @@ def _train(args: argparse.Namespace) -> int:
     from irc_torchrl.config import load_firefly2d_config
 
     model = _task_model(args.model)
-    device = [f"device={args.device}"] if args.device is not None else []
     base = None
     if args.resume is not None and args.config is None:  # resumed, its settings go on
         from irc_torchrl.checkpoint import load_checkpoint
@@ -114,7 +121,8 @@ def _train(args: argparse.Namespace) -> int:
         # but its device (another machine's, maybe) and task (the library checks it)
         saved = load_checkpoint(args.resume)["config"]
         base = {key: value for key, value in saved.items() if key not in ("device", "task")}
-    config = load_firefly2d_config(args.config, [*args.overrides, *device], model, base)
+    options = _option_settings(args, "device")
+    config = load_firefly2d_config(args.config, args.overrides, model, base, options)
     _check_sendable(args.model, "ddpg.collector_workers", config.ddpg.collector_workers)
     result = train_ensemble(
         config,
@@ -125,7 +133,8 @@ def _train(args: argparse.Namespace) -> int:
         model=model,
     )
     print(_best_policy(result.best))
-    print(f"wrote {args.out}/: checkpoint.pt, config.yaml, summary.json, logs/")
+    logs = ", logs/" if config.logger != "none" else ""
+    print(f"wrote {args.out}/: checkpoint.pt, config.yaml, summary.json{logs}")
     return 0
 
 
@@ -714,8 +723,8 @@ OPTION_SETTINGS = {
 
 def _check_settings_once(args: argparse.Namespace) -> None:
     """Refuse a ``key=value`` setting whose key the command line gives twice (``units.x=cm
-    units.x=m``, or ``seed=5`` with ``--seed 3``): which one was meant is the user's to say,
-    not the order's."""
+    units.x=m``, ``seed=5`` with ``--seed 3``, or ``theta.g_v=1.1`` with the whole mapping
+    ``theta={g_w: 1.0}``): which one was meant is the user's to say, not the order's."""
     if hasattr(args, "files"):
         settings = _files_and_settings(args)[1]
     else:
@@ -725,11 +734,17 @@ def _check_settings_once(args: argparse.Namespace) -> None:
     for key in OPTION_SETTINGS.get(args.command, ()):
         if getattr(args, key, None) is not None:
             items.append((key, f"--{key} {getattr(args, key)}"))
-    given: dict[str, str] = {}
-    for key, item in items:
-        if key in given:
-            raise ValueError(f"{key}: given twice ({given[key]!r} and {item!r}); give it once")
-        given[key] = item
+    for i, (key, item) in enumerate(items):
+        for other, earlier in items[:i]:
+            if _overlap(key, other):
+                shorter = min(key, other, key=len)
+                raise ValueError(f"{shorter}: given twice ({earlier!r} and {item!r}); give it once")
+
+
+def _overlap(key: str, other: str) -> bool:
+    """Whether two settings' keys set one value twice: the same key, or one a dotted prefix of
+    the other (``agents={n_agents: 2}`` and ``agents.n_agents=3``)."""
+    return key == other or key.startswith(f"{other}.") or other.startswith(f"{key}.")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -310,8 +311,8 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
         valid = _valid_keys(root)
         close = difflib.get_close_matches(prefix + dotted, valid, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        if prefix + dotted == "seed":
-            hint = " (the seed is the option --seed)"
+        if prefix + dotted in ("seed", "device"):  # irc simulate's and irc fit's options
+            hint = f" (the {dotted} is the option --{dotted})"
         raise KeyError(
             f"config: unknown key {prefix + dotted!r}{hint}; valid keys: {', '.join(valid)}"
         )
@@ -354,7 +355,7 @@ def _cast(name: str, value: Any, current: Any) -> Any:
     elif kind is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
-        if isinstance(value, str):  # YAML reads 1e-3 (no dot) as a string
+        if isinstance(value, str):  # a number quoted, or inf and nan (YAML's .inf, .nan)
             try:
                 return float(value)
             except ValueError:
@@ -364,9 +365,14 @@ def _cast(name: str, value: Any, current: Any) -> Any:
     raise ValueError(f"config: {name}={value!r} is not a valid {kind.__name__}")
 
 
-def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Firefly1DConfig:
-    """The embedded default, updated by the YAML file at ``path`` and then by ``key=value``."""
-    return _update(Firefly1DConfig(), path, overrides).validate()
+def load_config(
+    path: str | Path | None = None,
+    overrides: Sequence[str] = (),
+    options: Mapping[str, Any] | None = None,
+) -> Firefly1DConfig:
+    """The embedded default, updated by the YAML file at ``path``, then by ``key=value`` and
+    then by ``options`` (``{key: value}``, set as given: a command's options)."""
+    return _update(Firefly1DConfig(), path, overrides, options).validate()
 
 
 def load_firefly2d_config(
@@ -374,13 +380,16 @@ def load_firefly2d_config(
     overrides: Sequence[str] = (),
     model: TaskModel | None = None,
     base: Mapping[str, Any] | None = None,
+    options: Mapping[str, Any] | None = None,
 ) -> Firefly2DConfig:
-    """The ensemble-training config: embedded default, then the YAML file, then ``key=value``.
+    """The ensemble-training config: embedded default, then the YAML file, then ``key=value``,
+    then ``options``.
 
     ``model``: a task of the user's own; the default then names it as its task and warms up
     with random actions (the pursuit controller knows the 2D firefly only) (``None``: the 2D
     firefly task). ``base``: settings in plain-dict form over the embedded default (a
-    checkpoint's ``config``, so that a resumed run goes on with them).
+    checkpoint's ``config``, so that a resumed run goes on with them). ``options``:
+    ``{key: value}`` set as given, not read as YAML (a command's options, ``--device``).
     """
     config = Firefly2DConfig()
     if model is not None:
@@ -389,7 +398,7 @@ def load_firefly2d_config(
             config.ddpg.warmup_policy = "random"
     for key, value in (base or {}).items():
         _set(config, key, value, config)
-    return _update(config, path, overrides).validate(model)
+    return _update(config, path, overrides, options).validate(model)
 
 
 def load_simulate_config(overrides: Sequence[str] = ()) -> SimulateConfig:
@@ -434,17 +443,33 @@ def _check_file_kind(config: Any, data: dict, path: Path) -> None:
             )
 
 
-def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> Any:
-    """``config`` updated in place by the YAML file at ``path``, then by ``key=value`` items."""
+def _update(
+    config: Any,
+    path: str | Path | None,
+    overrides: Sequence[str],
+    options: Mapping[str, Any] | None = None,
+) -> Any:
+    """``config`` updated in place by the YAML file at ``path``, then by ``key=value`` items,
+    then by ``options``' values as given (not read as YAML)."""
     if path is not None:
         path = Path(path)
+        if path.is_dir():
+            raise ValueError(f"config: {path} is a folder; expected a YAML file")
         if not path.is_file():
             raise FileNotFoundError(f"config: no file at {path}")
-        data = _yaml(path.read_text(), str(path)) or {}
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as error:
+            raise ValueError(
+                f"config: {path} is not UTF-8 text ({error.reason} at byte {error.start}); "
+                "expected a YAML file"
+            ) from None
+        data = _yaml(text, str(path)) or {}
         if not isinstance(data, dict):
             raise ValueError(
                 f"config: {path} must hold a mapping of keys, got {type(data).__name__}"
             )
+        _check_names(data, str(path))
         _check_file_kind(config, data, path)
         for key, value in data.items():
             _set(config, key, value, config)
@@ -452,8 +477,24 @@ def _update(config: Any, path: str | Path | None, overrides: Sequence[str]) -> A
         key, sep, value = item.partition("=")
         if not sep:
             raise ValueError(f"config: override {item!r} must look like key=value")
-        _set(config, key.strip(), _yaml(value, f"override {item!r}"), config)
+        value = _yaml(value, f"override {item!r}")
+        _check_names({key.strip(): value}, f"override {item!r}")
+        _set(config, key.strip(), value, config)
+    for key, value in (options or {}).items():
+        _set(config, key, value, config)
     return config
+
+
+def _check_names(data: Any, source: str, field: str = "") -> None:
+    """Refuse a mapping key that is not a name (YAML reads ``1:``, ``true:`` and ``~:`` as a
+    number, a flag and null), naming it and where it stands: in ``source``, under ``field``."""
+    if not isinstance(data, dict):
+        return
+    for key, value in data.items():
+        if not isinstance(key, str):
+            under = f" under {field}" if field else ""
+            raise KeyError(f"config: key {key!r} in {source}{under}: expected a name")
+        _check_names(value, source, f"{field}.{key}" if field else key)
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -479,6 +520,15 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+# YAML 1.1 reads a number with an exponent but no dot or no exponent sign (``1e6``, ``1e-3``,
+# ``1.0e6``) as text; it is read as the number YAML 1.2 (and whoever wrote it) takes it for
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
 def _yaml(text: str, source: str) -> Any:
     """``text`` parsed as YAML, or a one-line error naming ``source`` and the problem."""
     try:
@@ -491,9 +541,13 @@ def _yaml(text: str, source: str) -> Any:
 
 
 def load_recovery2d_config(
-    path: str | Path | None = None, overrides: Sequence[str] = (), model: TaskModel | None = None
+    path: str | Path | None = None,
+    overrides: Sequence[str] = (),
+    model: TaskModel | None = None,
+    options: Mapping[str, Any] | None = None,
 ) -> Recovery2DConfig:
-    """The 2D recovery experiment's config: embedded default, the YAML file, then ``key=value``.
+    """The 2D recovery experiment's config: embedded default, the YAML file, then ``key=value``,
+    then ``options`` (``{key: value}``, set as given: a command's options, ``--checkpoint``).
 
     ``model``: a task of the user's own; the default then names it as its task (``None``: the
     2D firefly task).
@@ -501,4 +555,4 @@ def load_recovery2d_config(
     from irc_torchrl.algorithms.recover2d import Recovery2DConfig
 
     config = Recovery2DConfig() if model is None else Recovery2DConfig(task=model.name)
-    return _update(config, path, overrides).validate(model)
+    return _update(config, path, overrides, options).validate(model)

@@ -71,6 +71,63 @@ def test_each_option_reaches_the_run_it_sets(monkeypatch, tmp_path):
     assert (kwargs["free"], kwargs["seed"], kwargs["device"]) == (["g_v", "g_w"], 5, "cpu")
 
 
+def _no_work(*args, **kwargs):
+    raise AssertionError("work before the error")
+
+
+def test_option_values_reach_the_config_as_given_not_read_as_yaml(monkeypatch, tmp_path, capsys):
+    """Options went into the config as ``key=value`` read as YAML: ``--checkpoint "a #1/c.pt"``
+    became ``a`` (a comment cut off), ``"b: x/c.pt"`` a mapping, ``yes`` True, and
+    ``irc train --device "cpu #1"`` trained on the CPU."""
+    monkeypatch.chdir(tmp_path)
+    policy = resolve_checkpoint("firefly2d").read_bytes()
+    for name in ("a #1/c.pt", "b: x/c.pt", "yes"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_bytes(policy)
+        argv = ["recover", "--checkpoint", name, "--device", "cpu", "--out", "o"]
+        (config, *_), _ = _handed(monkeypatch, recover2d, "run_recovery", argv)
+        assert (config.checkpoint, config.device) == (name, "cpu")
+    monkeypatch.setattr(ensemble, "train_ensemble", _no_work)
+    assert main(["train", "--device", "cpu #1", "--out", "o", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("irc train: error: config: device must name a torch device")
+    assert err.rstrip().endswith("got 'cpu #1'")
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["simulate", "theta.g_v=true"], "config: theta.g_v: expected a real number, got True"),
+        (["fit", "a.csv", "theta.g_v=true"], "config: theta.g_v: expected a real number, got True"),
+        (["fit", "a.csv", "theta.foo=1"], "theta.foo: unknown θ parameter 'foo'; valid names: "),
+        (["fit", "a.csv", "--free", "g_v,foo"], "free: unknown θ parameter 'foo'; valid names: "),
+        (["fit", "a.csv", "theta.g_v=100"], "theta.g_v: fixed g_v=100.0 outside its range [0.8, "),
+    ],
+)
+def test_a_theta_setting_is_refused_naming_the_setting(
+    argv, message, monkeypatch, tmp_path, capsys
+):
+    """``theta.g_v=true`` was taken as 1.0, and ``irc fit``'s errors about θ names and values
+    did not say which setting they came from (``theta.foo=1`` and ``--free foo`` alike)."""
+    monkeypatch.setattr(recordings, "simulate_agents", _no_work)
+    monkeypatch.setattr(recordings, "read_trials", _no_work)
+    assert main([*argv, "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith(f"irc {argv[0]}: error: {message}")
+
+
+@pytest.mark.parametrize("logger, written", [("none", ""), ("csv", ", logs/")])
+def test_trains_last_line_lists_logs_only_where_written(
+    logger, written, monkeypatch, tmp_path, capsys
+):
+    """With ``logger=none`` the line still listed ``logs/``, which no run wrote."""
+    best = {"success_rate": 0.5, "mean_return": 1.0, "mean_length": 20.0, "updates": 4}
+    monkeypatch.setattr(ensemble, "train_ensemble", lambda *a, **k: Namespace(best=best))
+    out = tmp_path / "o"
+    assert main(["train", "--out", str(out), "--quiet", f"logger={logger}"]) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last == f"wrote {out}/: checkpoint.pt, config.yaml, summary.json{written}"
+
+
 def test_a_dotted_setting_after_the_options_is_a_setting_and_a_report_takes_none(tmp_path, capsys):
     out = str(tmp_path / "out")
     assert main(["fit", "absent.csv", "--out", out, "--quiet", "no.such=1"]) == 2

@@ -123,6 +123,9 @@ def test_seeds_outside_64_bits_exit_2_naming_the_seed(argv, tmp_path, capsys):
         (["demo", "seed=5", "--seed", "3"], "seed"),
         (["recover", "--device", "cpu", "device=cpu"], "device"),
         (["train", "--seed", "1", "seed=1"], "seed"),
+        # a whole mapping and a key within it (the mapping replaced theta.g_v, unseen)
+        (["demo", "agents={n_agents: 2}", "agents.n_agents=3"], "agents"),
+        (["simulate", "theta.g_v=1.1", "theta={g_w: 1.0}"], "theta"),
     ],
 )
 def test_a_setting_given_twice_exits_2_naming_it(argv, key, tmp_path, capsys):
@@ -200,6 +203,69 @@ def test_another_commands_config_file_is_refused_naming_both_commands(given, loa
 def test_missing_config_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="no file at"):
         load_config(tmp_path / "absent.yaml")
+
+
+def test_a_config_file_that_is_not_utf8_text_or_is_a_folder_is_named(tmp_path):
+    """A Latin-1 file said only that a byte could not be decoded (which file, not), and a
+    folder that there was no file."""
+    (tmp_path / "latin1.yaml").write_bytes("seed: 1  # café\n".encode("latin-1"))
+    with pytest.raises(
+        ValueError,
+        match=r"^config: \S*latin1.yaml is not UTF-8 text \(invalid continuation byte at byte "
+        r"14\); expected a YAML file$",
+    ):
+        load_config(tmp_path / "latin1.yaml")
+    with pytest.raises(ValueError, match=r"^config: \S* is a folder; expected a YAML file$"):
+        load_firefly2d_config(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("1: 2\n", "key 1 in FILE: expected a name"),
+        ("agents:\n  1: 2\n", "key 1 in FILE under agents: expected a name"),
+        ("true: 1\n", "key True in FILE: expected a name"),
+        ("~: 1\n", "key None in FILE: expected a name"),
+    ],
+)
+def test_a_key_that_is_not_a_name_is_refused_naming_it_and_its_file(text, message, tmp_path):
+    """YAML reads ``1:``, ``true:`` and ``~:`` as a number, a flag and null: they raised
+    AttributeError ('int' object has no attribute 'partition')."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(KeyError) as error:
+        load_config(path)
+    assert error.value.args[0] == f"config: {message.replace('FILE', str(path))}"
+
+
+def test_a_mapping_override_keyed_by_a_number_is_refused_naming_its_field():
+    """``theta_fixed={1: 0.5}`` failed as ``keywords must be strings``."""
+    with pytest.raises(KeyError) as error:
+        load_firefly2d_config(overrides=["theta_fixed={1: 0.5}"])
+    expected = "config: key 1 in override 'theta_fixed={1: 0.5}' under theta_fixed: expected a name"
+    assert error.value.args[0] == expected
+
+
+def test_an_integer_written_with_an_exponent_is_that_integer(tmp_path):
+    """YAML 1.1 reads ``1e6`` (no dot) and ``1.0e6`` (no exponent sign) as text: ``1e6`` was
+    refused as not an int where ``1.0e+6`` was taken; a fraction is refused as before."""
+    for written in ("1e6", "1.0e6", "1.0e+6", "1E6"):
+        config = load_firefly2d_config(overrides=[f"ddpg.total_frames={written}"])
+        assert config.ddpg.total_frames == 1_000_000 and type(config.ddpg.total_frames) is int
+    (tmp_path / "c.yaml").write_text("ddpg:\n  total_frames: 2e5\n  lr_actor: 1e-5\n")
+    ddpg = load_firefly2d_config(tmp_path / "c.yaml").ddpg
+    assert (ddpg.total_frames, ddpg.lr_actor) == (200_000, 1e-5)
+    with pytest.raises(ValueError, match=r"^config: ddpg.total_frames=1.5 is not a valid int$"):
+        load_firefly2d_config(overrides=["ddpg.total_frames=1.5e0"])
+
+
+@pytest.mark.parametrize("load", [load_simulate_config, load_recording_fit_config])
+def test_a_device_setting_points_to_the_option(load):
+    """``irc simulate device=cpu`` listed the valid keys; the device is an option there, as
+    the seed is."""
+    hint = r"unknown key 'device' \(the device is the option --device\); valid keys: "
+    with pytest.raises(KeyError, match=hint):
+        load(["device=cpu"])
 
 
 def test_help_lists_every_subcommand_with_a_purpose(capsys):

@@ -18,6 +18,7 @@ from irc_torchrl.algorithms.ensemble import (
     Firefly2DConfig,
     _anneal,
     _clone_loss,
+    _Logger,
     _policy_report,
     _pre_activation_penalty,
     _smoothness_loss,
@@ -89,6 +90,39 @@ def test_bad_config_is_a_clear_error(override, message):
     overrides = [override] if isinstance(override, str) else list(override)
     with pytest.raises((KeyError, ValueError), match=message):
         load_firefly2d_config(overrides=overrides)
+
+
+def test_a_pursuit_warmup_too_short_for_an_n_step_transition_is_refused():
+    """One warm-up batch of 4 steps passes no 5-step transition on: the clone's first sample
+    raised "Cannot sample from an empty storage" after the collection. The least warm-up that
+    gives one (a second batch begun) loads, and so does any without clone or critic updates,
+    which alone sample the warm-up's buffer."""
+    least = r"must be at least 257 with ddpg.clone_updates or ddpg.critic_updates \("
+    with pytest.raises(ValueError, match=rf"^config: ddpg.warmup_frames {least}.*, got 256$"):
+        load_firefly2d_config(overrides=["ddpg.warmup_frames=256"])
+    small = ["ddpg.buffer_size=256", "ddpg.batch_size=256"]  # the buffer caps the warm-up
+    with pytest.raises(ValueError, match=rf"^config: ddpg.buffer_size {least}.*, got 256$"):
+        load_firefly2d_config(overrides=small)
+    assert load_firefly2d_config(overrides=["ddpg.warmup_frames=257"]).ddpg.warmup_frames == 257
+    for other in ("ddpg.clone_updates=0 ddpg.critic_updates=0", "ddpg.warmup_policy=random"):
+        load_firefly2d_config(overrides=["ddpg.warmup_frames=256", *other.split()])
+
+
+def test_tensorboard_absent_is_warned_of_once_and_csv_written(monkeypatch, tmp_path):
+    """``logger=tensorboard`` without TensorBoard wrote CSV without a word."""
+    import torchrl.record.loggers as loggers
+
+    def absent(*args, **kwargs):
+        raise ImportError("torch.utils.tensorboard could not be imported")
+
+    monkeypatch.setattr(loggers, "TensorboardLogger", absent)
+    with pytest.warns(UserWarning) as caught:
+        logger = _Logger("tensorboard", tmp_path)
+    assert [str(w.message) for w in caught] == [
+        "logger='tensorboard': TensorBoard is not installed (torch.utils.tensorboard could not "
+        f"be imported); writing CSV logs to {tmp_path / 'logs'} instead"
+    ]
+    assert isinstance(logger.logger, loggers.CSVLogger)
 
 
 def test_actor_respects_action_bounds_and_reads_theta():

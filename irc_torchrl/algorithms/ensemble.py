@@ -331,10 +331,29 @@ class Firefly2DConfig:
                 f"ddpg.warmup_policy={d.warmup_policy!r} does not run; expected 0, "
                 f"got {d.bc_weight}"
             )
+        _check_warmup(d)
         one_of("logger", self.logger, ("csv", "tensorboard", "none"))
         if model is None:
             make_model(self)  # theta_fixed: unknown names and out-of-range values
         return self
+
+
+def _check_warmup(d: DDPGConfig) -> None:
+    """Refuse a pursuit warm-up too short for the clone and critic updates that learn from it:
+    it collects whole batches (of at most ``buffer_size`` frames in all), and the n-step
+    transform passes on no transition until each environment has taken ``n_steps`` steps."""
+    if d.warmup_policy != "pursuit" or d.clone_updates + d.critic_updates == 0:
+        return
+    least = d.n_steps // d.steps_per_batch * d.n_envs * d.steps_per_batch + 1
+    collected = {"ddpg.warmup_frames": d.warmup_frames, "ddpg.buffer_size": d.buffer_size}
+    for name, value in collected.items():
+        if value < least:
+            raise ValueError(
+                f"config: {name} must be at least {least} with ddpg.clone_updates or "
+                f"ddpg.critic_updates (the pursuit warm-up collects whole batches of "
+                f"ddpg.steps_per_batch={d.steps_per_batch} steps and passes on n-step "
+                f"transitions once past ddpg.n_steps={d.n_steps}), got {value}"
+            )
 
 
 def _check_trainable(config: Firefly2DConfig, model: TaskModel) -> None:
@@ -661,8 +680,12 @@ class _Logger:
 
                 self.logger = TensorboardLogger(self.NAME, log_dir=str(out / "logs"))
                 return
-            except ImportError:
-                pass  # TensorBoard absent: fall back to CSV as documented
+            except ImportError as error:  # TensorBoard absent: CSV, as documented
+                warnings.warn(
+                    f"logger='tensorboard': TensorBoard is not installed ({first_line(error)}); "
+                    f"writing CSV logs to {out / 'logs'} instead",
+                    stacklevel=4,
+                )
         from torchrl.record.loggers import CSVLogger
 
         self.logger = CSVLogger(self.NAME, log_dir=str(out / "logs"))

@@ -48,6 +48,7 @@ from irc_torchrl.algorithms.runtime import (
 )
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
+from irc_torchrl.checks import real
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import (
     earlier_summary,
@@ -85,14 +86,12 @@ TRADED_OFF = 0.8
 
 
 def _theta_values(values: dict, field: str, space: ThetaSpace | None = None) -> dict[str, float]:
-    """``{name: float}`` from config values, refusing anything that is not a number and,
-    given the agents' ``space``, another value for a parameter it holds fixed."""
+    """``{name: float}`` from config values, refusing anything that is not a real number (a
+    flag is not) and, given the agents' ``space``, another value for a parameter it holds
+    fixed."""
     out = {}
     for name, value in values.items():
-        try:
-            out[str(name)] = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"config: {field}.{name}={value!r} is not a number") from None
+        out[str(name)] = real(f"config: {field}.{name}", value)
         fixed = None if space is None else space.fixed.get(str(name))
         if fixed is not None and out[str(name)] != fixed:
             raise ValueError(
@@ -215,11 +214,17 @@ def fit_space(space: ThetaSpace, free: Sequence[str] | None, fixed: dict) -> The
     if isinstance(free, str):  # its letters would be taken for names
         raise TypeError(f"free: expected a list of parameter names, got the string {free!r}")
     values = _theta_values(fixed, "theta", space)
-    for name in values:
-        space[name]  # unknown names: a KeyError listing the valid ones
+    for name, value in values.items():
+        try:  # unknown names (a KeyError listing the valid ones), values outside the range
+            space.fix(**{name: value})
+        except (KeyError, ValueError) as error:
+            raise type(error)(f"theta.{name}: {error.args[0]}") from None
     names = [n for n in space.free_names if n not in values] if free is None else list(free)
     for name in names:
-        space[name]
+        try:
+            space[name]
+        except KeyError as error:
+            raise KeyError(f"free: {error.args[0]}") from None
         if name in space.fixed:
             raise ValueError(
                 f"free: {name!r} is fixed at {space.fixed[name]} in the checkpoint's θ space; "
