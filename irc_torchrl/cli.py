@@ -410,7 +410,9 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "lapse (how often an action dimension is unrelated to the belief; default 0.0), "
         "threads (default 1), theta.<name> (the agents' θ, what they believe; drawn from the "
         "prior where not given), task_theta.<name> (the world's θ, at its default where not "
-        "given; the recordings' theta.* columns), e.g. n_trials=50 theta.g_v=1.3",
+        "given; the recordings' theta.* columns), senses (agent: each agent observes as "
+        "noisily as its own θ says, the default; world: as task_theta says), e.g. "
+        "n_trials=50 theta.g_v=1.3",
     )
     simulate.set_defaults(run=_simulate)
     fit = commands.add_parser(
@@ -459,6 +461,8 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         "calibrate (e.g. 2: datasets simulated at each θ̂ and refitted to calibrate the "
         "intervals; each costs about the fit again), calibration_tail (own: each "
         "parameter's 95%% quantile, or shrunk toward all parameters' tails), "
+        "senses (agent: the noise of the agent's observations is its candidate θ's, the "
+        "default; world: the recordings' theta.obs_sigma_* columns'), "
         "theta.<name> (value of a parameter not fitted), units.<column> (a recorded unit, "
         "e.g. units.x=cm units.heading=deg), time_column and trial_column (the columns' "
         "names; default time and trial), e.g. max_iter=60",
@@ -579,6 +583,9 @@ def build_parser() -> argparse.ArgumentParser:
             "much as it is noise). lapse=0.05 makes the agents lapse (an "
             "action dimension unrelated to the belief) and the fit hold that rate; with "
             "fit_lapse=true the fit estimates each agent's rate instead, from 0.01. "
+            "Every agent observes as noisily as its own θ* says and the fits read that noise "
+            "off the candidate θ (senses=world: off the world's θ, the agents' θ* for those "
+            "whose model is right, and the default for the mistaken ones). "
             "fit.workers=2 shares the agents' fits among 2 processes (CPU; 1.2–1.3× faster "
             "on 2 cores; the numbers depend on the count, not on the machine). --model with "
             "--checkpoint runs the experiment on a task of your own, its agents acting "

@@ -37,7 +37,7 @@ from irc_torchrl.checks import (
 )
 from irc_torchrl.checks import positive as _positive
 from irc_torchrl.envs.firefly2d import Firefly2DModel
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import SENSES, TaskModel
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES
 from irc_torchrl.modules.likelihood import LAPSE_MAX
 
@@ -171,6 +171,10 @@ class SimulateConfig:
     theta: dict = field(default_factory=dict)
     #: the world's θ, e.g. ``task_theta.g_v=1.2``; a parameter left out takes its default
     task_theta: dict = field(default_factory=dict)
+    #: "agent": each agent observes as noisily as its own θ says (the task's sensory
+    #: parameters, e.g. obs_sigma_v), as ``irc fit`` assumes by default; "world": as the
+    #: world's θ says
+    senses: str = "agent"
     #: torch threads (small networks run fastest on one)
     threads: int = 1
 
@@ -184,6 +188,7 @@ class SimulateConfig:
             threads=self.threads,
         )
         probability(lapse=self.lapse)
+        one_of("senses", self.senses, SENSES)
         return self
 
 
@@ -231,6 +236,10 @@ class RecordingFitConfig:
     #: the precision the frozen actor runs in inside the float64 likelihood (see
     #: ``actor_dtype`` of ``irc recover``)
     actor_dtype: str = "float32"
+    #: "agent": the noise of the agent's observations is its own θ's (the task's sensory
+    #: parameters, fitted with the rest: no experimenter measures them); "world": the
+    #: recordings' (their theta.obs_sigma_v ... columns, else the defaults)
+    senses: str = "agent"
     #: values of the parameters left out of ``--free``, e.g. ``theta.sigma_v=0.3``;
     #: a parameter named nowhere takes its default
     theta: dict = field(default_factory=dict)
@@ -264,6 +273,7 @@ class RecordingFitConfig:
         one_of("intervals", self.intervals, INTERVALS)
         one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         one_of("calibration_tail", self.calibration_tail, TAILS)
+        one_of("senses", self.senses, SENSES)
         probability(lapse=self.lapse)
         if self.fit_lapse:
             _fitted_lapse_start(self.lapse)

@@ -30,6 +30,7 @@ from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy
 from irc_torchrl.config import FitConfig
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel
+from irc_torchrl.envs.model import sensed_world
 from irc_torchrl.modules.actor_critic import FeaturePolicy, censored_action_model
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
 from irc_torchrl.objectives.fisher import Z95, fisher_intervals
@@ -462,18 +463,20 @@ def test_agents_simulated_at_fits_lapse_at_each_ones_fitted_rate():
     # probability 0.1/4 inside the bounds, more where the output sits on a bound
     assert 0.3 * 0.8 < fraction[0] < 0.3 * (1 - 0.1 / 4) + 0.03
     assert fraction[1] < 0.01
-    # each acts at its own θ̂ in its own world
+    # each acts at its own θ̂ in its own world, sensing as noisily as its θ̂ says
     assert torch.equal(trials["theta"][:, 0, 0], theta_hat.float())
-    assert torch.equal(trials["task_theta"][:, 0, 0], world)
+    sensed = sensed_world(model, world, theta_hat.float())
+    assert torch.equal(trials["task_theta"][:, 0, 0], sensed)
+    assert not torch.equal(sensed, world)
 
 
 def test_recovery_reports_intervals_calibrated_on_simulated_refits():
-    """``calibrate=1`` on a tiny run (2 agents × 10 trials, map, 4 iterations): each
+    """``calibrate=1`` on a tiny run (2 agents × 11 trials, map, 4 iterations): each
     parameter's calibrated coverage is what its pivot and factor say, and every calibrated
     interval holds θ̂ inside θ's bounds. Four iterations leave the refits without intervals,
     so no factor is known (null) and the intervals span θ's range: nothing vouches for them."""
     config = Recovery2DConfig(
-        n_prior_agents=2, n_mistaken_agents=0, n_trials=10, methods="map", calibrate=1,
+        n_prior_agents=2, n_mistaken_agents=0, n_trials=11, methods="map", calibrate=1,
         fit=FitConfig(n_screen=2, n_starts=1, max_iter=4, curvature="bfgs",
                       covariance="sandwich"),
     )  # fmt: skip
@@ -527,9 +530,10 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
         fits.append((loss.method, kwargs["starts"], result))
         return result
 
-    def simulate(model, actor, action_model, result, world, n_trials, seed):
+    def simulate(model, actor, action_model, result, world, n_trials, seed, senses):
+        assert senses == config.senses
         simulated.append((result.theta_hat, world, n_trials, seed))
-        return simulate_at_fits(model, actor, action_model, result, world, n_trials, seed)
+        return simulate_at_fits(model, actor, action_model, result, world, n_trials, seed, senses)
 
     monkeypatch.setattr(recover2d, "fit_theta", fit)
     monkeypatch.setattr(recover2d, "simulate_at_fits", simulate)
@@ -545,12 +549,13 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
     marginal = results["marginal"]
     assert marginal is fits[1][2]
     world = trials["task_theta"][:, 0, 0]
-    assert torch.equal(world[1], space.default())  # the mistaken agent's
+    truth = trials["theta"][:, 0, 0]
+    # the mistaken agent's: the default but for its senses, its own
+    assert torch.equal(world[1], sensed_world(Firefly2DModel(), space.default(), truth[1]))
     for theta, at, n_trials, _ in simulated:
         assert torch.equal(theta, marginal.theta_hat) and torch.equal(at, world)
         assert n_trials == 3
     assert len({seed for *_, seed in simulated}) == len(simulated) == 10
-    truth = trials["theta"][:, 0, 0]
     actor, model, _ = load_ensemble_policy("firefly2d")
     action_model = recover2d._recovery_action_model(config, actor, model)
     for i, method in enumerate(("map", "marginal")):

@@ -77,8 +77,11 @@ def test_simulate_writes_a_recording_and_the_true_theta(simulated):
     assert agent["theta_true"] == pytest.approx(TRUTH, abs=1e-6)
     trials = read_trials(simulated / "agent0.csv", Firefly2DModel())
     assert trials.shape[0] == 20 and trials["mask"].sum(-1).min() >= 2
-    # the world keeps the task's default θ: the agent's θ is not in the recording
-    assert torch.allclose(trials["task_theta"][0, 0], SPACE.default())
+    # the world keeps the task's default θ but for the agent's senses (its obs_sigma_v, 0.6):
+    # the rest of the agent's θ is not in the recording
+    sensed = SPACE.default().clone()
+    sensed[SPACE.index("obs_sigma_v")] = TRUTH["obs_sigma_v"]
+    assert torch.allclose(trials["task_theta"][0, 0], sensed)
 
 
 def test_simulate_draws_unset_theta_from_the_prior_by_seed(tmp_path):
@@ -136,10 +139,12 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
     assert "95% intervals from the fit's likelihood alone, not calibrated" in table
     assert "(docs/recovery2d.md); calibrate=40 calibrates them by simulation" in table
     # irc fit's default, for recordings of real agents: the lapse rate fitted, from 0.01; this
-    # agent never lapses, and its rate falls (measured: 0.0030, interval up to 0.022)
+    # agent never lapses, and its rate stays small (measured: 0.024, interval up to 0.042: the
+    # hard E-step fitted here puts down to lapses some actions of a belief its own senses,
+    # obs σ_v 0.6, made noisy; 0.0030 where the world sensed it with the default's 0.4)
     assert summary["config"]["lapse"] == 0.01 and summary["config"]["fit_lapse"]
     low, high = agent["lapse_ci"]
-    assert 0 < low < agent["lapse"] < high < 0.05 and agent["lapse"] < 0.005
+    assert 0 < low < agent["lapse"] < high < 0.1 and agent["lapse"] < 0.05
     assert f"lapse rate (fitted): {agent['lapse']:.3g} [" in table
     # the hard E-step ignores the spread of the agent's beliefs: a particle filter finds the
     # recorded actions far more likely than it does
@@ -216,10 +221,7 @@ def test_fit_calibrates_its_intervals_on_refits_of_simulated_recordings(simulate
     assert "calibrated 95% CI" in table and "intervals calibrated on 1 simulated" in table
     assert "not calibrated" not in table
     assert all(factor is None for factor in calibration["factor"].values())
-    assert (
-        "rests on 1 refit(s) only; about 40 pin a 95% quantile, and with fewer than 19 a "
-        "parameter gets none: calibrate=40)"
-    ) in table
+    assert "scaled by g_v none, g_w none, obs_sigma_v none" in table
     assert "truth inside the calibrated 95% interval" in table
 
 
@@ -1062,7 +1064,8 @@ def test_calibration_simulates_each_recording_at_its_last_methods_fit_in_its_own
     fits = {"map": _fit_of([1.0, 2.0, 3.0]), "marginal": _fit_of([1.5, 2.5, 3.5])}
     simulated, refitted = [], []
 
-    def simulate(model, actor, action_model, result, world, n_trials, seed):
+    def simulate(model, actor, action_model, result, world, n_trials, seed, senses):
+        assert senses == "agent"  # the fit's
         simulated.append((result.theta_hat[:, 0].tolist(), world[:, 0].tolist(), n_trials, seed))
         at = result.theta_hat.view(-1, 1, 1, 1).expand(-1, n_trials, 1, 1)
         fields = {key: at for key in TRIAL_KEYS}  # each trial holds the θ it was simulated at

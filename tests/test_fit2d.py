@@ -76,17 +76,18 @@ def test_fit_reaches_a_likelihood_at_least_that_of_the_truth(recovery, shipped, 
 
 
 def test_the_truth_check_scores_the_truth_under_the_fitted_likelihood(recovery, shipped, at_truth):
-    # log L(θ̂) − log L(θ*) per agent, both at θ̂'s nuisance, as recomputed here; no fit ends
-    # below the truth (each θ̂ maximises its own likelihood), and an exact likelihood's median
-    # ratio is half the χ² median with 10 degrees of freedom (8 θ components, 2 motor noises)
+    # log L(θ̂, ν̂) − log L(θ*, ν*) per agent (ν: the motor noise, ν* the agents' own), as
+    # recomputed here; no fit ends below the truth (each maximises its own likelihood), and an
+    # exact likelihood's median ratio is half the χ² median with 10 degrees of freedom (8 θ
+    # components, 2 motor noises: at ν̂ it would have about 8)
     _, summary, fits = recovery
     actor, model, _ = shipped
-    held, truth, _ = at_truth
+    held, truth, motor = at_truth
     action_model = censored_action_model(actor, model, Recovery2DConfig(**SMALL).actor_dtype)
     for method, result in fits.items():
         loss = InverseRationalLoss(model, action_model, n_agents=truth.shape[0], method=method)
         with torch.no_grad():
-            truth_ll = loss.log_likelihood(truth, result.nuisance, held)
+            truth_ll = loss.log_likelihood(truth, motor, held)
         entry = summary["methods"][method]
         ratio = torch.tensor([a["log_likelihood_ratio"] for a in entry["agents"]])
         torch.testing.assert_close(ratio.double(), result.log_likelihood - truth_ll)
@@ -94,7 +95,7 @@ def test_the_truth_check_scores_the_truth_under_the_fitted_likelihood(recovery, 
         assert check["below_truth"] == 0, method
         assert check["median_log_likelihood_ratio"] == pytest.approx(float(ratio.median()))
         assert check["expected_median"] == pytest.approx(chi2.median(10) / 2)
-        steps = score_check(loss, held, truth, result.nuisance)
+        steps = score_check(loss, held, truth, motor)
         assert check["score_rms"] == pytest.approx(float(steps.pow(2).mean().sqrt()))
         assert check["score_beyond"] == pytest.approx(float((steps.abs() > 1.96).double().mean()))
     # one scoring step from the truth is N(0, 1) for an exact likelihood: the hard E-step's
@@ -544,19 +545,29 @@ def test_belief_agreement_reads_the_position_and_pose_of_any_task_from_its_units
         assert by_component[name] == pytest.approx(expected, abs=1e-6)
 
 
-def test_mistaken_agents_live_in_the_default_world_and_prior_agents_in_their_own(shipped):
+@pytest.mark.parametrize("senses", ["agent", "world"])
+def test_mistaken_agents_live_in_the_default_world_and_prior_agents_in_their_own(
+    shipped, senses
+):
     """θ* of every agent drawn from the prior by the seed; the first n_prior_agents act in
-    a world of their own θ*, the mistaken ones in the task's default world."""
+    a world of their own θ*, the mistaken ones in the task's default world, observing as
+    noisily as their own θ* says (``senses="agent"``) or as the default says (``"world"``)."""
     actor, model, _ = shipped
-    config = Recovery2DConfig(n_prior_agents=1, n_mistaken_agents=2, n_trials=2, seed=5)
+    config = Recovery2DConfig(
+        n_prior_agents=1, n_mistaken_agents=2, n_trials=2, seed=5, senses=senses
+    )
     trials, theta_true, mistaken = simulate_recovery_agents(model, actor, config)
     space = model.theta_space
     drawn = space.sample((3,), generator=torch.Generator().manual_seed(5))
     assert torch.equal(theta_true, drawn) and mistaken.tolist() == [False, True, True]
     assert torch.equal(trials["theta"], drawn[:, None, None].expand_as(trials["theta"]))
-    world = trials["task_theta"]
+    world = trials["task_theta"][:, :, 0]
     assert torch.equal(world[0], drawn[0].expand_as(world[0]))
-    assert torch.equal(world[1:], space.default().expand_as(world[1:]))
+    for name in space.names:
+        i = space.index(name)
+        own = senses == "agent" and name in model.sensory_names
+        expected = drawn[1:, i] if own else space.default()[i].expand(2)
+        assert torch.equal(world[1:, :, i], expected[:, None].expand(2, 2)), name
     assert not torch.equal(drawn[1:], space.default().expand(2, -1))
 
 
@@ -590,25 +601,33 @@ def test_format_recovery_prints_each_figure_from_its_own_field():
 
 
 def test_the_truth_check_counts_every_fit_below_the_truth(monkeypatch):
-    """Log-likelihoods −10, −12, −9 at θ̂ against −9, −11, −9.5 at θ*: ratios −1, −1, 0.5 into
-    each agent (median −1), two fits below θ*; scoring steps 0.5, −2.5, 1, 3 from θ*: rms
-    √(16.5 / 4) = 2.031, half beyond ±1.96; three fitted coordinates: half χ²₃'s median."""
+    """Log-likelihoods −10, −12, −9 at θ̂ against −9, −11, −9.5 at the truth (θ* and the
+    agents' own nuisance, both scored there): ratios −1, −1, 0.5 into each agent (median −1),
+    two fits below the truth; scoring steps 0.5, −2.5, 1, 3 from it: rms √(16.5 / 4) = 2.031,
+    half beyond ±1.96; three fitted coordinates: half χ²₃'s median."""
+    truth = torch.full((3, 1), 7.0, dtype=torch.float64)
 
     class Loss:
         parameter_names = ["a", "b", "c"]
 
         def log_likelihood(self, theta, nuisance, held):
             assert torch.equal(theta, torch.ones(3, 2, dtype=torch.float64))
+            assert nuisance is truth
             return torch.tensor([-9.0, -11.0, -9.5], dtype=torch.float64)
 
     steps = torch.tensor([0.5, -2.5, 1.0, 3.0], dtype=torch.float64)
-    monkeypatch.setattr(recover2d, "score_check", lambda *args: steps)
+
+    def score_check(loss, held, theta, nuisance):
+        assert nuisance is truth
+        return steps
+
+    monkeypatch.setattr(recover2d, "score_check", score_check)
     result = SimpleNamespace(
         nuisance=torch.zeros(3, 1, dtype=torch.float64),
         log_likelihood=torch.tensor([-10.0, -12.0, -9.0], dtype=torch.float64),
     )
     agents = [{}, {}, {}]
-    check = recover2d._truth_check(Loss(), None, result, torch.ones(3, 2), agents)
+    check = recover2d._truth_check(Loss(), None, result, torch.ones(3, 2), truth, agents)
     assert [agent["log_likelihood_ratio"] for agent in agents] == [-1.0, -1.0, 0.5]
     assert check == pytest.approx(
         {

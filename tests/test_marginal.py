@@ -910,11 +910,11 @@ def test_the_gaussian_sum_has_the_mean_and_covariance_of_the_gaussian_it_splits(
 
 
 def test_where_the_world_observes_without_noise_the_marginal_estimator_is_the_hard_e_step():
-    """With the world's observation noise at zero (its floor) the recorded states fix the
-    agent's belief: the marginal estimator's likelihood is the hard E-step's within 1e-4 nats
-    per trial (measured 4e-6; 0.04-0.29 apart at the agent's noise), and it recovers the same
-    beliefs, the agent's own covariance and no uncertainty about the mean, trials cut short
-    by the mask included."""
+    """With the world's observation noise at zero (its floor; read from the world's θ,
+    ``senses="world"``) the recorded states fix the agent's belief: the marginal estimator's
+    likelihood is the hard E-step's within 1e-4 nats per trial (measured 4e-6; 0.04-0.29
+    apart at the agent's noise), and it recovers the same beliefs, the agent's own covariance
+    and no uncertainty about the mean, trials cut short by the mask included."""
     from irc_torchrl.objectives.inverse import InverseRationalLoss
 
     theta = SPACE.from_dict({"obs_sigma_v": 0.6, "sigma_v": 0.3}).double().unsqueeze(0)
@@ -925,7 +925,7 @@ def test_where_the_world_observes_without_noise_the_marginal_estimator_is_the_ha
     nuisance = torch.full((1, 2), math.log(0.15), dtype=torch.float64)
     per_trial, beliefs = {}, {}
     for method in ("map", "marginal"):
-        loss = InverseRationalLoss(MODEL, action_model, method=method)
+        loss = InverseRationalLoss(MODEL, action_model, senses="world", method=method)
         per_trial[method] = loss.log_likelihood(theta, nuisance, trials, per_trial=True)
         beliefs[method] = loss.recovered_beliefs(theta, nuisance, trials)[trials["mask"]]
     torch.testing.assert_close(per_trial["marginal"], per_trial["map"], rtol=0, atol=1e-4)

@@ -37,7 +37,7 @@ from tensordict.nn import TensorDictSequential
 from irc_torchrl.algorithms.fit import FitResult
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.checks import count
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, sensed_world
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.fisher import Z95, narrow
 from irc_torchrl.theta import ThetaSpace
@@ -309,16 +309,20 @@ def simulate_at_fits(
     world: torch.Tensor,
     n_trials: int,
     seed: int,
+    senses: str = "agent",
 ) -> TensorDict:
     """Trials ``[n_agents, n_trials, T]`` of agents acting as fitted: each at its θ̂ with
     the motor noise and lapse rate of its nuisance (held or fitted, as ``action_model`` reads
-    them), in its world ``[n_agents, d]``. They run on the actor's device and come back on
-    the CPU, as recordings are read."""
+    them), in its world ``[n_agents, d]`` (with ``senses="agent"`` observing as noisily as
+    its θ̂ says, as the fits assume: :func:`~irc_torchrl.envs.model.sensed_world`). They run
+    on the actor's device and come back on the CPU, as recordings are read."""
     device = next(actor.parameters()).device
     noise = action_model.motor_noise(result.nuisance).unsqueeze(1).float()  # [agents, 1, da]
     lapse = action_model.lapse_rate(result.nuisance).view(-1, 1, 1).float()
     policy = motor_noise_policy(actor, model.action_spec.to(device), noise, lapse)
     theta, world = (x.float().to(device) for x in (result.theta_hat, world))
+    if senses == "agent":
+        world = sensed_world(model, world, theta)
     return simulate_agents(model, policy, theta, n_trials, task_theta=world, seed=seed).cpu()
 
 

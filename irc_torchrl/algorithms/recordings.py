@@ -60,7 +60,7 @@ from irc_torchrl.data.files import (
 from irc_torchrl.data.io import nwb_module, read_trials, recording_suffix, write_trials
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.data.units import UNITS
-from irc_torchrl.envs.model import TaskModel, continuous_actions
+from irc_torchrl.envs.model import TaskModel, continuous_actions, sensed_world
 from irc_torchrl.modules.actor_critic import censored_action_model
 from irc_torchrl.modules.likelihood import LAPSE_MAX, CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
@@ -115,7 +115,8 @@ def simulate_recordings(
     """Simulate ``config.n_agents`` agents and write one recording per agent into ``out``.
 
     Each agent's θ is ``config.theta`` where given and a prior draw (seeded) elsewhere; the
-    world's θ is ``config.task_theta`` over the θ space's default. ``model``: a task of the
+    world's θ is ``config.task_theta`` over the θ space's default (with ``config.senses``
+    "agent", the agent's own values of the task's ``sensory_names``). ``model``: a task of the
     user's own, whose policy ``checkpoint`` holds (``None``: the 2D firefly task). Returns the
     ``summary.json`` written beside the recordings (the true θ of every file).
     """
@@ -142,6 +143,9 @@ def simulate_recordings(
         prior = space.sample((config.n_agents,), generator=torch.Generator().manual_seed(seed))
         theta = space.from_dict(_theta_values(config.theta, "theta", space), prior, "theta")
         world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
+        _check_senses(config, model)
+        # each agent observes as noisily as its own θ says, unless the world says (senses)
+        worlds = sensed_world(model, world, theta) if config.senses == "agent" else world
         policy = motor_noise_policy(
             actor, model.action_spec.to(target), config.motor_noise, config.lapse
         )
@@ -151,7 +155,7 @@ def simulate_recordings(
             policy,
             theta.to(target),
             config.n_trials,
-            world.to(target),
+            worlds.to(target),
             seed=seed + 1,
             progress=lambda i, n: bar.update(i - bar.n),
         ).cpu()
@@ -194,6 +198,17 @@ def simulate_recordings(
     stale = [n for n in earlier if isinstance(n, str) and recording.fullmatch(n)]
     remove_stale(out, stale, {agent["file"] for agent in agents})
     return summary
+
+
+def _check_senses(config: SimulateConfig, model: TaskModel) -> None:
+    """Refuse a world's value of the agent's senses (``task_theta.obs_sigma_v``) where the
+    agents' senses are their own (``senses=agent``): it would be overridden unseen."""
+    given = [name for name in model.sensory_names if name in config.task_theta]
+    if given and config.senses == "agent":
+        raise ValueError(
+            f"task_theta.{given[0]}: with senses=agent each agent observes as noisily as its own "
+            f"θ says; expected theta.{given[0]} for the agents' value, or senses=world"
+        )
 
 
 def _earlier_agents(out: Path, command: str) -> list[dict] | None:
@@ -531,8 +546,8 @@ def _fit_groups(
         starts = None
         for name in methods:
             loss = InverseRationalLoss(
-                model, action_model, theta_space=space, n_agents=len(members), method=name,
-                components=config.components,
+                model, action_model, theta_space=space, n_agents=len(members),
+                senses=config.senses, method=name, components=config.components,
             ).to(device)  # fmt: skip
             work = partial(_fit_batch, loss, held, config, seed, starts, progress)
             result, fit_s = stages.fit(f"{stage}_{held.shape[1]}trials_{name}", work, device)
@@ -647,7 +662,7 @@ def _calibrate_fits(
             rows = torch.tensor(members, device=result.theta_hat.device)
             simulated = simulate_at_fits(
                 model, actor, action_model, result.select(rows), world[rows], n_trials,
-                seed + 1000 * (k + 1) + g,
+                seed + 1000 * (k + 1) + g, config.senses,
             )  # fmt: skip
             for j, i in enumerate(members):
                 synthetic[i] = simulated[j].select(*TRIAL_KEYS)

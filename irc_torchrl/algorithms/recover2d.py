@@ -66,9 +66,9 @@ from irc_torchrl.data.files import (
 )
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import SENSES, TaskModel, sensed_world
 from irc_torchrl.modules.actor_critic import ACTOR_DTYPES, censored_action_model
-from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
+from irc_torchrl.modules.likelihood import LAPSE_MAX, CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import METHODS, InverseRationalLoss
 from irc_torchrl.objectives.marginal import FINAL_STEPS, check_mixture
 from irc_torchrl.plots import (
@@ -121,6 +121,12 @@ class Recovery2DConfig:
     #: fit each agent's lapse rate beside its motor noise (from ``irc fit``'s default start,
     #: whatever the agents' rate) instead of holding ``lapse``
     fit_lapse: bool = False
+    #: "agent": every agent's observations are as noisy as its own θ* says (the task's
+    #: ``sensory_names``; a mistaken agent's world is the default in all else), and the fits
+    #: take them from the candidate θ, as no experimenter measures them; "world": from the
+    #: recorded world's θ, which for the agents whose model is right is their θ* (a sensory
+    #: noise measured apart)
+    senses: str = "agent"
     #: comma-separated estimators; when both run, ``marginal`` starts from the ``fit.n_starts``
     #: most likely (under its own likelihood) of ``map``'s θ̂ and the ``fit.n_screen`` prior draws
     methods: str = "map,marginal"
@@ -184,6 +190,7 @@ class Recovery2DConfig:
         one_of("actor_dtype", self.actor_dtype, ACTOR_DTYPES)
         check_workers(self.fit.workers, resolve_device(self.device))
         one_of("calibration_tail", self.calibration_tail, TAILS)
+        one_of("senses", self.senses, SENSES)
         unknown = [m for m in self.method_list if m not in METHODS]
         repeated = len(set(self.method_list)) != len(self.method_list)
         if unknown or repeated or not self.method_list:
@@ -216,6 +223,8 @@ def simulate_recovery_agents(
     theta_true = theta_true.to(device)
     mistaken = torch.arange(n, device=device) >= config.n_prior_agents
     world = torch.where(mistaken.unsqueeze(-1), space.default(device=device), theta_true)
+    if config.senses == "agent":
+        world = sensed_world(model, world, theta_true)
     policy = motor_noise_policy(
         actor, model.action_spec.to(device), config.motor_noise, config.lapse
     )
@@ -256,7 +265,9 @@ def predicted_widths(
     ).validate(model)
     trials, theta, _ = simulate_recovery_agents(model, actor, config)
     action_model = _recovery_action_model(config, actor, model)
-    loss = InverseRationalLoss(model, action_model, n_agents=n_agents, method="marginal")
+    loss = InverseRationalLoss(
+        model, action_model, n_agents=n_agents, senses=config.senses, method="marginal"
+    )
     space = model.theta_space
     widths = {}
     for n in n_trials:
@@ -275,6 +286,20 @@ def _recovery_action_model(
     return censored_action_model(
         actor, model, config.actor_dtype, config.motor_noise, lapse, config.fit_lapse
     )
+
+
+def _true_nuisance(
+    config: Recovery2DConfig, action_model: CensoredGaussianActionModel, result: FitResult
+) -> torch.Tensor:
+    """The agents' own nuisance rows ``[A, dn]``: the motor noise they acted with and, where
+    the fit estimates a lapse rate, theirs (a rate of 0 lies on that fit's bound, outside its
+    coordinates: there ν̂'s)."""
+    nuisance = result.nuisance.clone()
+    da = action_model.low.numel()
+    nuisance[:, :da] = math.log(config.motor_noise)
+    if action_model.fit_lapse and config.lapse > 0:
+        nuisance[:, da] = math.log(config.lapse / (LAPSE_MAX - config.lapse))
+    return nuisance
 
 
 def belief_agreement(
@@ -362,6 +387,7 @@ def recover_firefly2d(
     fitted = _fit_methods(config, model, action_model, held, stages, progress)
     for method, (loss, result, fit_s) in fitted.items():
         scored = score_recovery(space, theta_true, result)
+        truth = _true_nuisance(config, action_model, result)
         groups = {
             group: score_recovery(space, theta_true[rows], result.select(rows))["parameters"]
             for group, rows in (("prior", ~mistaken), ("mistaken", mistaken))
@@ -389,7 +415,7 @@ def recover_firefly2d(
             "lapse_hat": statistics.median(action_model.lapse_rate(result.nuisance).tolist()),
             "lapse_fitted": action_model.fit_lapse,
             "fit_s": fit_s,
-            "truth_check": _truth_check(loss, held, result, theta_true, scored["agents"]),
+            "truth_check": _truth_check(loss, held, result, theta_true, truth, scored["agents"]),
         }
         timings[f"fit_{method}_s"] = fit_s
         if config.particles:
@@ -438,7 +464,7 @@ def _fit_methods(
     fitted: dict[str, _Fitted] = {}
     for method in config.method_list:
         loss = InverseRationalLoss(
-            model, action_model, n_agents=held.shape[0], method=method,
+            model, action_model, n_agents=held.shape[0], senses=config.senses, method=method,
             components=config.components,
         )  # fmt: skip
         work = partial(
@@ -477,8 +503,9 @@ def _calibrate(
 
     def refit(i: int) -> dict[str, FitResult]:
         synthetic = simulate_at_fits(
-            model, actor, action_model, result, world, config.n_trials, config.seed + 1000 + i
-        )
+            model, actor, action_model, result, world, config.n_trials, config.seed + 1000 + i,
+            config.senses,
+        )  # fmt: skip
         synthetic = synthetic.select(*TRIAL_KEYS).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"
         fitted = _fit_methods(
@@ -495,21 +522,23 @@ def _truth_check(
     held: TensorDict,
     result: FitResult,
     theta_true: torch.Tensor,
+    nuisance_true: torch.Tensor,
     agents: list[dict],
 ) -> dict:
-    """``log L(θ̂) − log L(θ*)`` under the fitted likelihood itself (θ̂'s nuisance at both)
-    into each agent's entry, and its median against an exact likelihood's (half the χ²
-    median, one degree of freedom per fitted coordinate); ``below_truth`` counts the fits
-    that ended below θ*, which no maximum can. Also :func:`score_check` at θ*: the rms of
+    """``log L(θ̂, ν̂) − log L(θ*, ν*)`` under the fitted likelihood itself (ν: the nuisance,
+    ``nuisance_true`` the agents' own) into each agent's entry, and its median against an
+    exact likelihood's (half the χ² median, one degree of freedom per fitted coordinate; at
+    θ̂'s nuisance the statistic would have fewer); ``below_truth`` counts the fits that ended
+    below the truth, which no maximum can. Also :func:`score_check` at the truth: the rms of
     one scoring step in standard deviations and its share beyond ±1.96 (an exact
-    likelihood's: 1 and 5%)."""
+    likelihood's: 1 and 5%; at ν̂ the nuisance's steps would be about 0)."""
     theta_true = theta_true.to(result.nuisance)
     with torch.no_grad():
-        at_truth = loss.log_likelihood(theta_true, result.nuisance, held)
+        at_truth = loss.log_likelihood(theta_true, nuisance_true, held)
     ratio = result.log_likelihood - at_truth
     for agent, value in zip(agents, ratio.tolist(), strict=True):
         agent["log_likelihood_ratio"] = value
-    steps = score_check(loss, held, theta_true, result.nuisance)
+    steps = score_check(loss, held, theta_true, nuisance_true)
     return {
         "median_log_likelihood_ratio": statistics.median(ratio.tolist()),
         "expected_median": float(chi2.median(len(loss.parameter_names))) / 2,

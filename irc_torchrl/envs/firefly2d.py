@@ -16,7 +16,11 @@ nothing about where the agent already is).
 The agent observes its velocities (optic flow), ``o = (v, ω) + (σᵒ_v ε, σᵒ_ω ε)``. The target is
 seen only at the start: it lies ``target_distance`` ahead within ``±target_angle`` of the
 initial heading, and the agent knows its start pose. The trial ends when the agent stops
-(``a_v < stop_threshold`` at ``step ≥ min_steps``) or after ``max_steps``.
+(``a_v < stop_threshold`` at ``step ≥ min_steps``) or after ``max_steps``: the forward control
+alone decides (not ``‖a‖ ≤ 0.1`` as in the anchors), so from ``min_steps`` on any negative
+``a_v`` stops (no reversing) and a stop's turning control moves nothing. The observation noise
+is the agent's senses' (``sensory_names``): the world draws it under the agent's own θ where a
+recovery or fit says ``senses="agent"``.
 
 θ (natural units; ``σ`` are noise standard deviations):
 
@@ -149,6 +153,8 @@ class Firefly2DModel(TaskModel):
     action_names = ("a_v", "a_w")
     target_names = ("target_x", "target_y")
     name = "firefly2d"
+    #: the optic flow's noise is the agent's own: no experimenter measures it
+    sensory_names = ("obs_sigma_v", "obs_sigma_w")
 
     def __init__(
         self,

@@ -20,17 +20,22 @@ from irc_torchrl.theta import ThetaSpace
 
 __all__ = [
     "ABSURD",
+    "SENSES",
     "TaskModel",
     "action_in_spec",
     "bounded_box",
     "check_action_spec",
     "continuous_actions",
     "own_theta_space",
+    "sensed_world",
 ]
 
 #: a recorded rate this many times the largest gain of its unit in the θ space is taken as a
 #: unit mistake (:meth:`TaskModel.rate_limit`'s default)
 ABSURD = 10.0
+#: where the noise of the agent's observations comes from: its own θ (the paper's; no
+#: experimenter measures it), or the recorded world's θ
+SENSES = ("agent", "world")
 
 
 class TaskModel(abc.ABC):
@@ -62,6 +67,10 @@ class TaskModel(abc.ABC):
     #: the task's name, which its checkpoints carry (a class that names none and inherits
     #: none a base named: the class's name)
     name: str
+    #: θ parameters of the agent's senses (e.g. its observation noise): with ``senses="agent"``
+    #: (:func:`sensed_world`) the world draws the agent's observations under the agent's own
+    #: values of these, as the paper's O_θo does, since no experimenter measures them
+    sensory_names: tuple[str, ...] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -213,6 +222,17 @@ def _batched_jacobian(
     ]
     jac = torch.func.vmap(torch.func.jacrev(fn, argnums=0))(*flat)
     return jac.reshape(*batch, *jac.shape[1:])
+
+
+def sensed_world(model: TaskModel, task_theta: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """The world's θ ``task_theta`` ``[*B, d]`` with the task's :attr:`~TaskModel.sensory_names`
+    taken from the agent's ``theta`` (broadcast): the world whose observations of the agent
+    are as noisy as the agent's senses are by its own θ."""
+    if not model.sensory_names:
+        return task_theta
+    own = torch.zeros(model.theta_space.dim, dtype=torch.bool, device=task_theta.device)
+    own[[model.theta_space.index(name) for name in model.sensory_names]] = True
+    return torch.where(own, theta.to(task_theta), task_theta)
 
 
 def action_in_spec(spec: TensorSpec, action: torch.Tensor, slack: float = 0.0) -> torch.Tensor:

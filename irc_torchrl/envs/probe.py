@@ -40,6 +40,13 @@ def check_model(model: TaskModel) -> None:
     if not isinstance(model, TaskModel):
         raise TypeError(f"model: expected a TaskModel, got {type(model).__name__}")
     check_action_spec(model)
+    names = model.theta_space.names
+    sensory = model.sensory_names
+    if not isinstance(sensory, tuple) or not all(name in names for name in sensory):
+        raise ValueError(
+            f"model.sensory_names: expected a tuple of θ parameter names from {names}, "
+            f"got {sensory!r}"
+        )
     # on the CPU, where θ's default lives, and with gradients even where the caller has none
     with torch.device("cpu"), torch.inference_mode(False), torch.enable_grad():
         probe = _Probe(model)

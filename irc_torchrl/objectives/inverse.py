@@ -21,7 +21,7 @@ from torchrl.objectives import LossModule
 from irc_torchrl.checks import count, first_line
 from irc_torchrl.data.trajectories import TRIAL_KEYS, validate_trials
 from irc_torchrl.envs.belief import ekf_step
-from irc_torchrl.envs.model import TaskModel, continuous_actions
+from irc_torchrl.envs.model import SENSES, TaskModel, continuous_actions, sensed_world
 from irc_torchrl.envs.probe import check_model
 from irc_torchrl.objectives.marginal import (
     FINAL_STEPS,
@@ -55,6 +55,10 @@ class InverseRationalLoss(LossModule):
             under the candidate θ (its transitions count too, its observations' noise is the
             candidate's, the recorded ``task_theta`` is not read, though :meth:`forward`
             checks it as it checks every recorded field).
+        senses: ``"agent"`` if the noise of the agent's observations is its own (the world's
+            θ has the task's :attr:`~irc_torchrl.envs.model.TaskModel.sensory_names` from the
+            candidate θ: the paper's O_θo, which no experimenter measures), ``"world"`` if it
+            is the recorded ``task_theta``'s (a sensory noise measured apart).
         method: ``"map"``, the paper's hard E-step (the agent's observations at their most
             probable value), or ``"marginal"``, the agent's unseen observations integrated out
             by an outer filter over its belief (:mod:`~irc_torchrl.objectives.marginal`).
@@ -87,6 +91,7 @@ class InverseRationalLoss(LossModule):
         theta_space: ThetaSpace | None = None,
         n_agents: int = 1,
         world: str = "known",
+        senses: str = "agent",
         method: str = "map",
         moments: str = "cubature",
         components: int = 1,
@@ -97,6 +102,8 @@ class InverseRationalLoss(LossModule):
         n_agents = count("n_agents", n_agents)
         if world not in ("known", "shared"):
             raise ValueError(f"world: expected 'known' or 'shared', got {world!r}")
+        if senses not in SENSES:
+            raise ValueError(f"senses: expected one of {SENSES}, got {senses!r}")
         if method not in METHODS:
             raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
         if method == "marginal" and not hasattr(action_model, "assimilate"):
@@ -125,6 +132,7 @@ class InverseRationalLoss(LossModule):
                 f"got {self.theta_space.names}"
             )
         self.world = world
+        self.senses = senses
         free = self.theta_space.free_mask
         start = self.theta_space.to_unconstrained(self.theta_space.default(torch.float64))[free]
         self.theta_free = nn.Parameter(start.expand(n_agents, -1).clone())
@@ -287,6 +295,8 @@ class InverseRationalLoss(LossModule):
         task_theta = (
             theta_b if self.world == "shared" else trials[keys.task_theta][:, :, 0].to(dtype)
         )
+        if self.senses == "agent":
+            task_theta = sensed_world(self.model, task_theta, theta_b)
         return theta_b, nuisance_b, state, action, target, mask, task_theta
 
     def _map_log_likelihood(
