@@ -13,7 +13,7 @@ from tensordict import TensorDict
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig
 from irc_torchrl.algorithms.simulate import simulate_agents
 from irc_torchrl.data.trajectories import TRIAL_KEYS
-from irc_torchrl.envs.model import TaskModel
+from irc_torchrl.envs.model import TaskModel, sensed_world
 
 
 def integer(least: int = 1) -> Callable[[str], int]:
@@ -48,6 +48,7 @@ def recorded_agents(
     model: TaskModel, policy, theta: torch.Tensor, n_trials: int, seed: int
 ) -> TensorDict:
     """Agents of θ ``[n, d]`` acting by ``policy`` in the world of the θ space's defaults,
-    simulated with ``seed + 1`` (``seed`` draws θ), as recorded: states, actions, targets."""
-    world = model.theta_space.default()
+    each sensing as noisily as its θ says (as the fits assume), simulated with ``seed + 1``
+    (``seed`` draws θ), as recorded: states, actions, targets."""
+    world = sensed_world(model, model.theta_space.default(), theta)
     return simulate_agents(model, policy, theta, n_trials, world, seed=seed + 1).select(*TRIAL_KEYS)

@@ -50,9 +50,9 @@ def main() -> None:
     parser.add_argument("--agents", type=integer(), default=None, help="default 8 (4 with --quick)")
     parser.add_argument(
         "--trials",
-        type=integer(11),  # the sandwich needs a trial per fitted coordinate (8 θ, 3 nuisance)
+        type=integer(12),  # the sandwich: more trials than fitted coordinates (8 θ, 3 nuisance)
         default=None,
-        help="default 100 (40 with --quick); at least 11",
+        help="default 100 (40 with --quick); at least 12",
     )
     parser.add_argument("--threads", type=integer(), default=2)
     parser.add_argument("--seed", type=integer(0), default=0, help="seed of θ, trials and fits")

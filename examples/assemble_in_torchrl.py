@@ -29,6 +29,7 @@ from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.envs import BeliefReward, EKFBelief, Firefly2DEnv, Firefly2DModel
+from irc_torchrl.envs.model import sensed_world
 from irc_torchrl.modules.actor_critic import FeaturePolicy, make_actor, make_critic
 from irc_torchrl.modules.likelihood import CensoredGaussianActionModel
 from irc_torchrl.objectives.inverse import InverseRationalLoss
@@ -88,7 +89,8 @@ def fit_with_adam(n_agents: int, n_trials: int, steps: int, seed: int) -> dict:
     space = model.theta_space
     theta = space.sample((n_agents,), generator=torch.Generator().manual_seed(seed))
     policy = motor_noise_policy(actor, model.action_spec, motor_noise=0.1)
-    trials = simulate_agents(model, policy, theta, n_trials, space.default(), seed=seed)
+    world = sensed_world(model, space.default(), theta)  # each senses as its θ says
+    trials = simulate_agents(model, policy, theta, n_trials, world, seed=seed)
     held = trials.select("state", "action", "target", "mask", "task_theta")  # what is recorded
     low, high = model.action_spec.space.low, model.action_spec.space.high
     action_model = CensoredGaussianActionModel(FeaturePolicy(actor), low, high)

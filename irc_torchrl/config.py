@@ -96,7 +96,7 @@ class FitConfig:
     #: "bfgs" (Fisher scoring far from θ̂, BFGS near it: no second derivatives until θ̂)
     curvature: str = "hessian"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹;
-    #: it needs at least as many trials per agent as fitted coordinates)
+    #: it needs more trials per agent than fitted coordinates)
     covariance: str = "hessian"
     #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
     intervals: str = "wald"
@@ -216,7 +216,7 @@ class RecordingFitConfig:
     #: how the iterations measure curvature (see ``fit.curvature`` of ``irc recover``)
     curvature: str = "bfgs"
     #: intervals from "hessian" (the observed information) or "sandwich" (H⁻¹ Σ sᵢsᵢᵀ H⁻¹;
-    #: it needs at least as many trials per recording as fitted coordinates)
+    #: it needs more trials per recording than fitted coordinates)
     covariance: str = "hessian"
     #: 95% intervals from that covariance ("wald") or from the profile likelihood ("profile")
     intervals: str = "wald"

@@ -21,6 +21,7 @@ from irc_torchrl.algorithms.calibration import (
     format_factors,
     interval_pivots,
     simulate_at_fits,
+    warn_too_few_refits,
 )
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
@@ -170,12 +171,24 @@ def test_the_own_factor_is_the_pivots_95_percent_quantile_at_rank_95_of_m_plus_1
         few = torch.arange(1.0, 20.0, dtype=torch.float64).view(1, 19, 1).expand(1, 19, k)
         assert calibration_factor(few, tail) == pytest.approx(19 / Z95, rel=1e-12)
         assert math.isinf(calibration_factor(few[:, 1:], tail))
+        # 19 with an interval beside a refit without one (NaN, sorted past the largest)
+        lacking = torch.cat([few, torch.full((1, 1, k), torch.nan, dtype=torch.float64)], 1)
+        assert calibration_factor(lacking, tail) == pytest.approx(19 / Z95, rel=1e-12)
 
 
 def calibration_factor(pivots: torch.Tensor, tail: str) -> float:
     """The first parameter's factor from ``pivots`` ``[1, m, k]`` of the 2D task's names."""
     names = [f"p{i}" for i in range(pivots.shape[-1])]
     return Calibration.from_pivots(names, pivots.contiguous(), tail).factor[0].item()
+
+
+def test_too_few_refits_for_any_factor_are_warned_of_before_any_refit(recwarn):
+    """3 agents × 2 datasets: 6 refits, no factor; 10 × 2: 20, a factor; 0: no calibration."""
+    with pytest.warns(UserWarning, match=r"calibrate=2: 3 agent\(s\) × 2 dataset\(s\) give 6 "):
+        warn_too_few_refits(3, 2)
+    warn_too_few_refits(10, 2)
+    warn_too_few_refits(3, 0)
+    assert not recwarn.list
 
 
 @pytest.mark.parametrize("m", [12, 19, 36, 80])
@@ -473,8 +486,9 @@ def test_agents_simulated_at_fits_lapse_at_each_ones_fitted_rate():
 def test_recovery_reports_intervals_calibrated_on_simulated_refits():
     """``calibrate=1`` on a tiny run (2 agents × 11 trials, map, 4 iterations): each
     parameter's calibrated coverage is what its pivot and factor say, and every calibrated
-    interval holds θ̂ inside θ's bounds. Four iterations leave the refits without intervals,
-    so no factor is known (null) and the intervals span θ's range: nothing vouches for them."""
+    interval holds θ̂ inside θ's bounds. Two refits are too few for a 95% quantile (19 are
+    the fewest), so no factor is known (null) and the intervals span θ's range: nothing
+    vouches for them."""
     config = Recovery2DConfig(
         n_prior_agents=2, n_mistaken_agents=0, n_trials=11, methods="map", calibrate=1,
         fit=FitConfig(n_screen=2, n_starts=1, max_iter=4, curvature="bfgs",

@@ -143,7 +143,9 @@ def test_agents_that_lapse_are_fitted_with_their_motor_noise_only_by_a_lapse_mod
     noise = {}
     for lapse in (0.0, 0.05):
         action_model = censored_action_model(actor, model, "float32", lapse=lapse)
-        loss = InverseRationalLoss(model, action_model, n_agents=2, method="marginal")
+        loss = InverseRationalLoss(
+            model, action_model, n_agents=2, senses="world", method="marginal"
+        )
         result = fit_theta(
             loss, held, max_iter=8, seed=0, n_screen=8, n_starts=1, curvature="bfgs"
         )
@@ -171,7 +173,7 @@ def test_a_fitted_lapse_rate_finds_each_agents_own():
         "state", "action", "target", "mask", "task_theta"
     )
     action_model = censored_action_model(actor, model, "float32", lapse=0.01, fit_lapse=True)
-    loss = InverseRationalLoss(model, action_model, n_agents=4, method="marginal")
+    loss = InverseRationalLoss(model, action_model, n_agents=4, senses="world", method="marginal")
     result = fit_theta(loss, held, max_iter=20, seed=0, n_screen=8, n_starts=1, curvature="bfgs")
     fitted = action_model.lapse_rate(result.nuisance)
     low, high = map(action_model.lapse_rate, result.nuisance_intervals(loss.bounded[-3:]))

@@ -79,24 +79,40 @@ def test_with_the_agents_senses_the_likelihood_reads_no_recorded_sensory_noise(s
         InverseRationalLoss(model, action_model, senses="own")
 
 
-def test_simulate_writes_each_agents_senses_and_refuses_a_worlds_value_of_them(tmp_path):
+def test_simulated_agents_sense_by_their_own_theta_which_the_files_do_not_hold(
+    tmp_path, monkeypatch
+):
+    """Each agent observes with its own obs_sigma_v (0.9); the recordings' theta.* columns
+    and the summary hold the world's θ as an experimenter knows it, the default. A world's
+    value of the senses is refused under ``senses=agent`` before anything is written."""
+    worlds = []
+
+    def simulate(model, policy, theta, n_trials, task_theta, **kwargs):
+        worlds.append(task_theta)
+        return simulate_agents(model, policy, theta, n_trials, task_theta, **kwargs)
+
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.simulate_agents", simulate)
     config = SimulateConfig(n_agents=2, n_trials=1, theta={"obs_sigma_v": 0.9})
     summary = simulate_recordings(config, tmp_path / "agent", progress=False)
-    default = Firefly2DModel().theta_space["obs_sigma_v"].default
-    assert summary["task_theta"]["obs_sigma_v"] == pytest.approx(default)  # the world, float32
+    space = Firefly2DModel().theta_space
+    i = space.index("obs_sigma_v")
+    assert worlds[0][:, i].tolist() == pytest.approx([0.9, 0.9])
+    assert worlds[0][:, space.index("g_v")].tolist() == pytest.approx([1.2, 1.2])
+    default = space["obs_sigma_v"].default
+    assert summary["task_theta"]["obs_sigma_v"] == pytest.approx(default)  # float32
     columns = (tmp_path / "agent" / "agent0.csv").read_text().splitlines()
-    header = columns[0].split(",")
-    row = dict(zip(header, columns[1].split(","), strict=True))
-    assert float(row["theta.obs_sigma_v"]) == pytest.approx(0.9)
+    row = dict(zip(columns[0].split(","), columns[1].split(","), strict=True))
+    assert float(row["theta.obs_sigma_v"]) == pytest.approx(default)
     given = SimulateConfig(task_theta={"obs_sigma_w": 0.2})
     with pytest.raises(ValueError, match=r"task_theta.obs_sigma_w: with senses=agent each agent"):
         simulate_recordings(given, tmp_path / "refused", progress=False)
-    assert not (tmp_path / "refused").exists()
+    assert not (tmp_path / "refused").exists() and len(worlds) == 1
     simulate_recordings(
         SimulateConfig(n_trials=1, task_theta={"obs_sigma_w": 0.2}, senses="world"),
         tmp_path / "world",
         progress=False,
     )
+    assert worlds[1][space.index("obs_sigma_w")].item() == pytest.approx(0.2)
     for config in (RecordingFitConfig, Recovery2DConfig):
         with pytest.raises(ValueError, match="senses must be one of"):
             config(senses="rig").validate()

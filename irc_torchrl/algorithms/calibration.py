@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -52,6 +53,7 @@ __all__ = [
     "format_factors",
     "interval_pivots",
     "simulate_at_fits",
+    "warn_too_few_refits",
 ]
 
 #: unconstrained coordinates are clamped here when intervals are widened (as Wald ends are)
@@ -220,17 +222,19 @@ def _quantile_and_scale(size: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]
 
     The quantile is read at rank 0.95 (m + 1) of the parameter's m refits, between the two
     nearest (Weibull's; an infinite pivot counted as the largest float): the k-th smallest of
-    m is exceeded by a new pivot exchangeable with them k/(m + 1) of the time, so this one 5%
-    of the time at any m, where the quantile interpolated at rank 0.95 (m − 1) + 1 is exceeded
-    6% at m = 80 (40 agents × 2 datasets), 11% at m = 12 and 34% at m = 2 (|N(0, 1)|
-    pivots). Below :data:`FEWEST_REFITS` refits that rank lies past the largest: infinite.
+    m is exceeded by a new pivot exchangeable with them (m + 1 − k)/(m + 1) of the time, so
+    this one 5% of the time at any m, where the quantile interpolated at rank 0.95 (m − 1) + 1
+    is exceeded 6% at m = 80 (40 agents × 2 datasets), 11% at m = 12 and 34% at m = 2
+    (|N(0, 1)| pivots). Below :data:`FEWEST_REFITS` refits that rank lies past the largest:
+    infinite.
     """
     m = (~size.isnan()).sum(-2, keepdim=True)
     rank = 95 * (m + 1)  # in hundredths
     ordered = size.clamp_max(torch.finfo(size.dtype).max).sort(dim=-2).values  # NaN last
     below = (rank // 100 - 1).clamp(0, size.shape[-2] - 1)
     low = ordered.gather(-2, below)
-    high = ordered.gather(-2, (below + 1).clamp_max(size.shape[-2] - 1))
+    # at most the m-th (the largest with an interval; past it lie the NaN of the others)
+    high = ordered.gather(-2, torch.minimum(below + 1, (m - 1).clamp_min(0)))
     quantile = low + (rank % 100) / 100 * (high - low)
     quantile = torch.where(rank <= 100 * m, quantile, torch.inf).squeeze(-2)
     return quantile, torch.nanquantile(size.where(size > 0, torch.nan), 0.5, dim=-2)
@@ -277,6 +281,20 @@ def agent_intervals(result: FitResult) -> list[dict]:
         {k: v for k, v in result.agent(i).items() if k in keys}
         for i in range(len(result.theta_hat))
     ]
+
+
+def warn_too_few_refits(n_agents: int, calibrate: int) -> None:
+    """Warn, before any refit, where ``n_agents × calibrate`` refits per parameter are too few
+    for any factor: every calibrated interval would span θ's range."""
+    refits = n_agents * calibrate
+    if 0 < refits < FEWEST_REFITS:
+        warnings.warn(
+            f"calibrate={calibrate}: {n_agents} agent(s) × {calibrate} dataset(s) give {refits} "
+            f"refits per parameter, fewer than the {FEWEST_REFITS} a 95% quantile needs, so "
+            "every calibrated interval will span θ's range; expected calibrate ≥ "
+            f"{math.ceil(FEWEST_REFITS / n_agents)} (about {MIN_REFITS} refits pin it)",
+            stacklevel=3,
+        )
 
 
 def format_factors(calibration: dict) -> str:

@@ -36,6 +36,7 @@ from irc_torchrl.algorithms.calibration import (
     calibrate_intervals,
     format_factors,
     simulate_at_fits,
+    warn_too_few_refits,
 )
 from irc_torchrl.algorithms.ensemble import TASK, load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, check_sandwich, fit_theta, particle_check
@@ -160,6 +161,8 @@ def simulate_recordings(
             progress=lambda i, n: bar.update(i - bar.n),
         ).cpu()
         bar.close()
+        # the files hold the world's θ as an experimenter knows it, not the agents' senses
+        trials["task_theta"] = world.expand_as(trials["task_theta"]).clone()
         simulate_s = time.perf_counter() - start
         agents = []
         earlier = [agent.get("file") for agent in _earlier_agents(out, "simulate") or []]
@@ -365,6 +368,7 @@ def fit_recordings(
     config.validate()
     target = resolve_device(device)
     check_workers(config.workers, target)
+    warn_too_few_refits(len(paths), config.calibrate)
     paths = [Path(p) for p in paths]
     seen: dict[Path, Path] = {}
     for path in paths:

@@ -36,6 +36,7 @@ from irc_torchrl.algorithms.calibration import (
     calibrate_intervals,
     format_factors,
     simulate_at_fits,
+    warn_too_few_refits,
 )
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import (
@@ -353,6 +354,7 @@ def recover_firefly2d(
     (:func:`recovery_stages`).
     """
     config.validate(model)
+    warn_too_few_refits(config.n_prior_agents + config.n_mistaken_agents, config.calibrate)
     stages = stages or Stages()
     actor, model, _ = load_ensemble_policy(config.checkpoint, resolve_device(config.device), model)
     space = model.theta_space

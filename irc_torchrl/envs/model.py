@@ -226,8 +226,10 @@ def _batched_jacobian(
 
 def sensed_world(model: TaskModel, task_theta: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     """The world's θ ``task_theta`` ``[*B, d]`` with the task's :attr:`~TaskModel.sensory_names`
-    taken from the agent's ``theta`` (broadcast): the world whose observations of the agent
-    are as noisy as the agent's senses are by its own θ."""
+    taken from the agent's ``theta`` (broadcast, cast to the world's dtype and device): the
+    world whose observations of the agent are as noisy as the agent's senses are by its own
+    θ. :class:`~irc_torchrl.envs.task_env.TaskEnv` and :func:`simulate_agents` take the world
+    they are given: pass them this one for agents whose senses are their own."""
     if not model.sensory_names:
         return task_theta
     own = torch.zeros(model.theta_space.dim, dtype=torch.bool, device=task_theta.device)
