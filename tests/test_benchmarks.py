@@ -28,7 +28,7 @@ def bench(monkeypatch):
     [
         ("bench_fit", ["--agents", "0"], "argument --agents: expected an integer ≥ 1, got '0'"),
         ("bench_fit", ["--seed", "-1"], "argument --seed: expected an integer ≥ 0, got '-1'"),
-        ("bench_lapse", ["--trials", "x"], "argument --trials: expected an integer ≥ 11, got 'x'"),
+        ("bench_lapse", ["--trials", "x"], "argument --trials: expected an integer ≥ 12, got 'x'"),
         ("bench_env2d", ["--repeats", "0"], "argument --repeats: expected an integer ≥ 1"),
         ("bench_actor_precision", ["--threads", "0"], "argument --threads: expected an integer"),
         ("bench_demo1d", ["--seeds", "1", "-2"], "argument --seeds: expected an integer ≥ 0"),
