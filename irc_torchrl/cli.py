@@ -33,7 +33,7 @@ def _demo(args: argparse.Namespace) -> int:
     from irc_torchrl.algorithms.demo import format_summary, run_demo
     from irc_torchrl.config import load_config
 
-    options = _option_settings(args, "seed")
+    options = _option_settings(args)
     if args.task == "firefly2d":
         from irc_torchrl.algorithms.recover2d import DEMO_OVERRIDES
 
@@ -49,13 +49,14 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _recover(args: argparse.Namespace) -> int:
-    options = _option_settings(args, "seed", "device", "checkpoint")
-    return _run_recovery(args.config, args.overrides, args, options)
+    return _run_recovery(args.config, args.overrides, args, _option_settings(args))
 
 
-def _option_settings(args: argparse.Namespace, *keys: str) -> dict[str, Any]:
-    """The config settings among ``keys`` that ``args``' options give (``--seed 3``: ``seed``),
-    their values as given: a path or a device name is not read as YAML (``#`` a comment)."""
+def _option_settings(args: argparse.Namespace, skip: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The config settings the command's options give (:data:`OPTION_SETTINGS`, but ``skip``;
+    ``--seed 3``: ``seed``), their values as given: a path or a device name is not read as
+    YAML (``#`` a comment)."""
+    keys = [key for key in OPTION_SETTINGS.get(args.command, ()) if key not in skip]
     return {key: getattr(args, key) for key in keys if getattr(args, key) is not None}
 
 
@@ -121,7 +122,7 @@ def _train(args: argparse.Namespace) -> int:
         # but its device (another machine's, maybe) and task (the library checks it)
         saved = load_checkpoint(args.resume)["config"]
         base = {key: value for key, value in saved.items() if key not in ("device", "task")}
-    options = _option_settings(args, "device")
+    options = _option_settings(args, skip=("seed",))  # the seed goes to train_ensemble
     config = load_firefly2d_config(args.config, args.overrides, model, base, options)
     _check_sendable(args.model, "ddpg.collector_workers", config.ddpg.collector_workers)
     result = train_ensemble(

@@ -339,8 +339,7 @@ def simulate_at_fits(
     lapse = action_model.lapse_rate(result.nuisance).view(-1, 1, 1).float()
     policy = motor_noise_policy(actor, model.action_spec.to(device), noise, lapse)
     theta, world = (x.float().to(device) for x in (result.theta_hat, world))
-    if senses == "agent":
-        world = sensed_world(model, world, theta)
+    world = sensed_world(model, world, theta, senses)
     return simulate_agents(model, policy, theta, n_trials, task_theta=world, seed=seed).cpu()
 
 

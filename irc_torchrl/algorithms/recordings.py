@@ -146,7 +146,7 @@ def simulate_recordings(
         world = space.from_dict(_theta_values(config.task_theta, "task_theta"), None, "task_theta")
         _check_senses(config, model)
         # each agent observes as noisily as its own θ says, unless the world says (senses)
-        worlds = sensed_world(model, world, theta) if config.senses == "agent" else world
+        worlds = sensed_world(model, world, theta, config.senses)
         policy = motor_noise_policy(
             actor, model.action_spec.to(target), config.motor_noise, config.lapse
         )

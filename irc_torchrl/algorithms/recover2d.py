@@ -224,8 +224,7 @@ def simulate_recovery_agents(
     theta_true = theta_true.to(device)
     mistaken = torch.arange(n, device=device) >= config.n_prior_agents
     world = torch.where(mistaken.unsqueeze(-1), space.default(device=device), theta_true)
-    if config.senses == "agent":
-        world = sensed_world(model, world, theta_true)
+    world = sensed_world(model, world, theta_true, config.senses)
     policy = motor_noise_policy(
         actor, model.action_spec.to(device), config.motor_noise, config.lapse
     )

@@ -224,13 +224,16 @@ def _batched_jacobian(
     return jac.reshape(*batch, *jac.shape[1:])
 
 
-def sensed_world(model: TaskModel, task_theta: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+def sensed_world(
+    model: TaskModel, task_theta: torch.Tensor, theta: torch.Tensor, senses: str = "agent"
+) -> torch.Tensor:
     """The world's θ ``task_theta`` ``[*B, d]`` with the task's :attr:`~TaskModel.sensory_names`
     taken from the agent's ``theta`` (broadcast, cast to the world's dtype and device): the
     world whose observations of the agent are as noisy as the agent's senses are by its own
-    θ. :class:`~irc_torchrl.envs.task_env.TaskEnv` and :func:`simulate_agents` take the world
+    θ; with ``senses="world"`` (:data:`SENSES`), ``task_theta`` as it is.
+    :class:`~irc_torchrl.envs.task_env.TaskEnv` and :func:`simulate_agents` take the world
     they are given: pass them this one for agents whose senses are their own."""
-    if not model.sensory_names:
+    if senses == "world" or not model.sensory_names:
         return task_theta
     own = torch.zeros(model.theta_space.dim, dtype=torch.bool, device=task_theta.device)
     own[[model.theta_space.index(name) for name in model.sensory_names]] = True

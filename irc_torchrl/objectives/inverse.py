@@ -295,8 +295,7 @@ class InverseRationalLoss(LossModule):
         task_theta = (
             theta_b if self.world == "shared" else trials[keys.task_theta][:, :, 0].to(dtype)
         )
-        if self.senses == "agent":
-            task_theta = sensed_world(self.model, task_theta, theta_b)
+        task_theta = sensed_world(self.model, task_theta, theta_b, self.senses)
         return theta_b, nuisance_b, state, action, target, mask, task_theta
 
     def _map_log_likelihood(
