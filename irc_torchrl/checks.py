@@ -9,12 +9,14 @@ from collections.abc import Callable, Mapping, Sequence
 from numbers import Integral, Real
 from typing import Any
 
+import numpy as np
 import torch
 
 __all__ = [
     "SEED_LIMIT",
     "check_fields",
     "count",
+    "derived_seed",
     "first_line",
     "non_negative",
     "one_of",
@@ -116,6 +118,14 @@ def seed(field: str, value: int) -> int:
     if isinstance(number, bool) or not isinstance(number, Integral) or not 0 <= number < 2**64:
         raise ValueError(f"{field}: expected an integer in [0, 2**64), got {shown(value)}")
     return int(number)
+
+
+def derived_seed(seed: int, *stream: int) -> int:
+    """A seed in ``[0, 2**63)`` for the random stream ``stream`` of a run seeded ``seed``,
+    by numpy's ``SeedSequence``: unlike ``seed + k``, the streams of runs with neighbouring
+    seeds share no draws (run 4's calibration is not run 5's shifted by one)."""
+    words = np.random.SeedSequence(seed, spawn_key=stream).generate_state(2, np.uint32)
+    return (int(words[0]) << 31) ^ int(words[1])
 
 
 def _canonical(value: Any, default: Any) -> Any:

@@ -28,6 +28,7 @@ from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
 from irc_torchrl.algorithms.recovery import score_recovery
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
+from irc_torchrl.checks import derived_seed
 from irc_torchrl.config import FitConfig
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel
@@ -569,7 +570,9 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
     for theta, at, n_trials, _ in simulated:
         assert torch.equal(theta, marginal.theta_hat) and torch.equal(at, world)
         assert n_trials == 3
-    assert len({seed for *_, seed in simulated}) == len(simulated) == 10
+    seeds = [seed for *_, seed in simulated]
+    assert seeds == [derived_seed(config.seed, recover2d.CALIBRATION, i) for i in range(10)]
+    assert len(set(seeds)) == 10
     actor, model, _ = load_ensemble_policy("firefly2d")
     action_model = recover2d._recovery_action_model(config, actor, model)
     for i, method in enumerate(("map", "marginal")):
@@ -590,6 +593,24 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
         assert entry["parameters"] == scores
 
 
+def test_neighbouring_seeds_derive_streams_that_share_no_seed():
+    """Recovery draws 0-9 with calibrate=80: no calibration dataset of one draw is simulated
+    with a seed another draw's streams use (``seed + 1000 + i`` gave draw 4's dataset i + 1
+    draw 5's dataset i), every derived seed is one torch takes, and a seed derives the same."""
+    streams = {
+        draw: [derived_seed(draw, recover2d.CALIBRATION, i) for i in range(80)]
+        + [derived_seed(draw, s) for s in (recover2d.SIMULATION, recover2d.STARTS)]
+        for draw in range(10)
+    }
+    every = [seed for seeds in streams.values() for seed in seeds]
+    assert len(set(every)) == len(every) == 820
+    assert all(0 <= seed < 2**63 for seed in every)
+    torch.Generator().manual_seed(max(every))
+    assert streams[4] == [derived_seed(4, recover2d.CALIBRATION, i) for i in range(80)] + [
+        derived_seed(4, s) for s in (recover2d.SIMULATION, recover2d.STARTS)
+    ]
+
+
 def test_a_fit_result_prints_one_line_per_agent(space2d):
     """The dataclass's repr printed every tensor in full (27,190 characters for 40 agents):
     one header line, then each agent's θ̂ with its interval, the unconverged marked."""
@@ -602,3 +623,40 @@ def test_a_fit_result_prints_one_line_per_agent(space2d):
     assert lines[0] == "FitResult(2 agents, 1 iterations, 1 converged)"
     assert lines[1].startswith("  agent 0: g_v=1.2 [1.1") and "(not converged)" not in lines[1]
     assert lines[2].endswith(" (not converged)") and len(lines) == 3
+
+
+def test_the_particle_check_scores_the_truth_at_the_agents_own_motor_noise(monkeypatch):
+    """Like the truth check, the particle check's second point is the agents' own (θ*, ν*):
+    at θ̂'s nuisance ν̂ (here 0.3, the agents' 0.1) a fitted motor noise would be compared
+    with the truth's, and (θ̂, ν̂) with (θ*, ν̂)."""
+    space = Firefly2DModel().theta_space
+    k = len(space.free_names)
+    eye, checked = torch.eye(k, dtype=torch.float64), {}
+
+    def fit(loss, held, **kwargs):
+        n = held.shape[0]
+        return dataclasses.replace(
+            _result(space, space.default().double().expand(n, -1), 4 * eye.expand(n, k, k)),
+            nuisance=torch.full((n, 2), math.log(0.3), dtype=torch.float64),
+        )
+
+    def check(loss, held, theta, nuisance, n_particles, seed):
+        checked[len(checked)] = (theta, nuisance, seed)
+        zeros = torch.zeros(held.shape[0])
+        keys = ("particle_log_likelihood", "approximation_gap", "min_effective_particles")
+        return dict.fromkeys(keys, zeros)
+
+    monkeypatch.setattr(recover2d, "fit_theta", fit)
+    monkeypatch.setattr(recover2d, "particle_check", check)
+    monkeypatch.setattr(recover2d, "_truth_check", lambda *args: {})
+    config = Recovery2DConfig(
+        n_prior_agents=2, n_mistaken_agents=0, n_trials=2, methods="marginal", particles=8,
+        motor_noise=0.1, calibrate=0, fit=FitConfig(covariance="hessian"),
+    )  # fmt: skip
+    trials, _, results = recover_firefly2d(config)
+    (at_hat, hat_noise, seed), (at_true, true_noise, same_seed) = checked.values()
+    assert torch.equal(at_hat, results["marginal"].theta_hat)
+    assert torch.equal(hat_noise, results["marginal"].nuisance)
+    assert torch.equal(at_true, trials["theta"][:, 0, 0])
+    assert torch.allclose(true_noise.exp(), torch.tensor(0.1, dtype=true_noise.dtype))
+    assert seed == same_seed == derived_seed(config.seed, recover2d.PARTICLES)

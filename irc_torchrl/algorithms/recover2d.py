@@ -52,7 +52,7 @@ from irc_torchrl.algorithms.runtime import check_workers, finish, resolve_device
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
-from irc_torchrl.checks import check_fields, non_negative, one_of, probability
+from irc_torchrl.checks import check_fields, derived_seed, non_negative, one_of, probability
 from irc_torchrl.config import (
     FitConfig,
     RecordingFitConfig,
@@ -92,6 +92,10 @@ __all__ = [
     "state_layout",
     "write_recovery",
 ]
+
+#: the random streams of a run, each its own seed derived from the config's
+#: (:func:`~irc_torchrl.checks.derived_seed`; θ* are drawn with the config's seed itself)
+SIMULATION, STARTS, PARTICLES, CALIBRATION = range(1, 5)
 
 
 @dataclass
@@ -234,7 +238,7 @@ def simulate_recovery_agents(
         theta_true,
         config.n_trials,
         task_theta=world,
-        seed=config.seed + 1,
+        seed=derived_seed(config.seed, SIMULATION),
         progress=progress,
     )
     return trials, theta_true, mistaken
@@ -421,7 +425,7 @@ def recover_firefly2d(
         timings[f"fit_{method}_s"] = fit_s
         if config.particles:
             entry["particle_check"], timings[f"particle_check_{method}_s"] = _particle_check(
-                loss, held, result, theta_true, config, scored["agents"], stages
+                loss, held, result, theta_true, truth, config, scored["agents"], stages
             )
     if config.calibrate:
         begin = time.perf_counter()
@@ -479,7 +483,7 @@ def _fit_methods(
             covariance=config.fit.covariance,
             intervals=config.fit.intervals,
             starts=fitted["map"].result.theta_hat if "map" in fitted else None,
-            seed=config.seed + 2,
+            seed=derived_seed(config.seed, STARTS),
             progress=None if progress is None else partial(progress, method + label),
             workers=config.fit.workers,
         )
@@ -504,8 +508,8 @@ def _calibrate(
 
     def refit(i: int) -> dict[str, FitResult]:
         synthetic = simulate_at_fits(
-            model, actor, action_model, result, world, config.n_trials, config.seed + 1000 + i,
-            config.senses,
+            model, actor, action_model, result, world, config.n_trials,
+            derived_seed(config.seed, CALIBRATION, i), config.senses,
         )  # fmt: skip
         synthetic = synthetic.select(*TRIAL_KEYS).to(held.device)
         label = f" (calibration {i + 1}/{config.calibrate})"
@@ -554,25 +558,24 @@ def _particle_check(
     held: TensorDict,
     result: FitResult,
     theta_true: torch.Tensor,
+    nuisance_true: torch.Tensor,
     config: Recovery2DConfig,
     agents: list[dict],
     stages: Stages,
 ) -> tuple[dict, float]:
-    """:func:`particle_check` at θ̂ and at θ* (θ̂'s nuisance) into each agent's entry, and
-    its medians with the seconds both took; ``more_likely_at_theta_true`` counts the agents
-    whose θ̂ the particle filter finds less likely than θ* (which no exact maximum of the
-    likelihood can be). Each is the stage ``particles{n}_{where}_{method}``."""
+    """:func:`particle_check` at (θ̂, ν̂) and at the agents' own (θ*, ν*) into each agent's
+    entry, and its medians with the seconds both took; ``more_likely_at_theta_true`` counts
+    the agents whose (θ̂, ν̂) the particle filter finds less likely than their own (which no
+    exact maximum of the likelihood can be). Each is the stage
+    ``particles{n}_{where}_{method}``."""
     checks, seconds = {}, 0.0
-    for where, theta in (("at_theta_hat", result.theta_hat), ("at_theta_true", theta_true)):
-        work = partial(
-            particle_check,
-            loss,
-            held,
-            theta,
-            result.nuisance,
-            config.particles,
-            seed=config.seed + 3,
-        )
+    points = {
+        "at_theta_hat": (result.theta_hat, result.nuisance),
+        "at_theta_true": (theta_true, nuisance_true),
+    }
+    for where, (theta, nuisance) in points.items():
+        seed = derived_seed(config.seed, PARTICLES)
+        work = partial(particle_check, loss, held, theta, nuisance, config.particles, seed=seed)
         name = f"particles{config.particles}_{where}_{loss.method}"
         checks[where], took = stages.check(name, work, held.device)
         seconds += took
