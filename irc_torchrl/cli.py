@@ -307,8 +307,18 @@ def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]
 def _report(args: argparse.Namespace) -> int:
     from irc_torchrl.plots import read_summary, report_run
 
-    summary = read_summary(args.folder)
-    drawn = report_run(args.folder, summary)
+    for folder in args.folders:
+        if "=" in folder and not Path(folder).exists():
+            raise ValueError(f"DIR: {folder} is a setting; irc report takes run folders only")
+    if len(args.folders) > 1:
+        from irc_torchrl.algorithms.recovery import format_pooled, pool_coverage
+
+        summaries = {folder: read_summary(folder) for folder in args.folders}
+        print(format_pooled(pool_coverage(summaries)))
+        return 0
+    (folder,) = args.folders
+    summary = read_summary(folder)
+    drawn = report_run(folder, summary)
     table = _table(summary)
     if table:
         print(table)
@@ -471,17 +481,24 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
     fit.set_defaults(run=_fit)
     report = commands.add_parser(
         "report",
-        help="print the table of a run folder (fit, recover, demo or train), draw its figures",
+        help="print the table of a run folder (fit, recover, demo or train), draw its figures; "
+        "pool the coverage of several recovery draws",
         description=(
             "Read DIR/summary.json, print the table the run ended with (the best policy for "
             "`irc train`) and write PNG figures into DIR: θ̂ against the true θ with "
             "95% intervals for the recordings whose truth is known (the others' θ̂ is in the "
             "table and summary.json; with no truth, θ̂ with intervals per recording), "
             "the recovered beliefs (from beliefs.npz), training curves for `irc train`, and for "
-            "the 2D task q_function.png (Q of the run's checkpoint, paper Fig. 1B)."
+            "the 2D task q_function.png (Q of the run's checkpoint, paper Fig. 1B). With several "
+            "folders of `irc recover` draws (different seeds), print instead each method's "
+            "coverage per parameter pooled over all their agents, raw and calibrated, with its "
+            "95% Clopper-Pearson interval and each draw's: one draw of 40 agents cannot tell "
+            "0.95 from 0.90 (draws nothing)."
         ),
     )
-    report.add_argument("folder", metavar="DIR", help="a run folder with a summary.json")
+    report.add_argument(
+        "folders", metavar="DIR", nargs="+", help="a run folder with a summary.json"
+    )
     report.set_defaults(run=_report)
 
 
@@ -695,8 +712,9 @@ def _held(args: argparse.Namespace) -> AbstractContextManager:
 
     if getattr(args, "out", None) is not None:
         return held(args.out)
-    if getattr(args, "folder", None) is not None and Path(args.folder).is_dir():
-        return held(args.folder, field="DIR")
+    folders = getattr(args, "folders", None)
+    if folders is not None and len(folders) == 1 and Path(folders[0]).is_dir():
+        return held(folders[0], field="DIR")
     return nullcontext()
 
 
