@@ -30,7 +30,7 @@ __all__ = [
 ]
 
 #: a config's seeds are integers in [0, SEED_LIMIT): torch's generators take 64 bits, and the
-#: seeds derived from one (``seed + 1000 * k``) must fit too
+#: seeds offset from one (training's ``seed + 7919 * k``) must fit too
 SEED_LIMIT = 2**63
 
 

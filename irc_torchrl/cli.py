@@ -307,9 +307,11 @@ def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]
 def _report(args: argparse.Namespace) -> int:
     from irc_torchrl.plots import read_summary, report_run
 
-    for folder in args.folders:
-        if "=" in folder and not Path(folder).exists():
+    for i, folder in enumerate(args.folders):
+        if re.fullmatch(r"[A-Za-z_][\w.]*=.*", folder) and not Path(folder).exists():
             raise ValueError(f"DIR: {folder} is a setting; irc report takes run folders only")
+        if Path(folder).resolve() in {Path(f).resolve() for f in args.folders[:i]}:
+            raise ValueError(f"DIR: {folder} given twice; expected each draw once")
     if len(args.folders) > 1:
         from irc_torchrl.algorithms.recovery import format_pooled, pool_coverage
 
@@ -497,7 +499,10 @@ def _add_recording_commands(commands: argparse._SubParsersAction) -> None:
         ),
     )
     report.add_argument(
-        "folders", metavar="DIR", nargs="+", help="a run folder with a summary.json"
+        "folders",
+        metavar="DIR",
+        nargs="+",
+        help="a run folder with a summary.json (two or more: recovery draws to pool)",
     )
     report.set_defaults(run=_report)
 

@@ -596,7 +596,8 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
 def test_neighbouring_seeds_derive_streams_that_share_no_seed():
     """Recovery draws 0-9 with calibrate=80: no calibration dataset of one draw is simulated
     with a seed another draw's streams use (``seed + 1000 + i`` gave draw 4's dataset i + 1
-    draw 5's dataset i), every derived seed is one torch takes, and a seed derives the same."""
+    draw 5's dataset i), every derived seed is one torch takes, and a seed derives the same
+    seeds on every machine."""
     streams = {
         draw: [derived_seed(draw, recover2d.CALIBRATION, i) for i in range(80)]
         + [derived_seed(draw, s) for s in (recover2d.SIMULATION, recover2d.STARTS)]
@@ -606,9 +607,9 @@ def test_neighbouring_seeds_derive_streams_that_share_no_seed():
     assert len(set(every)) == len(every) == 820
     assert all(0 <= seed < 2**63 for seed in every)
     torch.Generator().manual_seed(max(every))
-    assert streams[4] == [derived_seed(4, recover2d.CALIBRATION, i) for i in range(80)] + [
-        derived_seed(4, s) for s in (recover2d.SIMULATION, recover2d.STARTS)
-    ]
+    # pinned: a change of the construction would change every draw's data
+    assert derived_seed(0, 1) == 1445747666553143162
+    assert derived_seed(4, recover2d.CALIBRATION, 0) == 4283610659707493945
 
 
 def test_a_fit_result_prints_one_line_per_agent(space2d):

@@ -16,32 +16,33 @@ def _summary(seed: int, n_agents: int, raw: dict, calibrated: dict | None = None
         entry["calibrated"] = {"parameters": {n: {"coverage": c} for n, c in calibrated.items()}}
     return {
         "command": "recover",
+        "task": "firefly2d",
+        "checkpoint": "firefly2d",
         "seed": seed,
         "n_agents": n_agents,
+        "n_trials": 100,
+        "mistaken": [False] * (n_agents - 1) + [True],
         "methods": {"marginal": entry},
     }
 
 
 def test_coverage_is_pooled_over_every_agent_of_the_draws_with_its_interval():
-    """36 of 40 and 40 of 40 are 76 of 80, not the mean of two rates when the draws differ in
-    size (30 of 30 beside 36 of 40: 66 of 70); a method calibrated in one draw only has no
-    pooled calibrated coverage."""
+    """36 of 40, 40 of 40 and 40 of 40 are 116 of 120, with the interval of that count; a
+    method calibrated in two draws of three has no pooled calibrated coverage."""
     pooled = pool_coverage(
         {
             "d0": _summary(0, 40, {"g_v": 0.9, "goal": 0.975}, {"g_v": 0.95, "goal": 1.0}),
             "d1": _summary(1, 40, {"g_v": 1.0, "goal": 0.925}, {"g_v": 0.925, "goal": 0.95}),
-            "d2": _summary(2, 30, {"g_v": 1.0, "goal": 0.9}),
+            "d2": _summary(2, 40, {"g_v": 1.0, "goal": 0.9}),
         }
     )
-    assert pooled["n_agents"] == 110 and pooled["draws"] == ["d0", "d1", "d2"]
+    assert pooled["n_agents"] == 120 and pooled["draws"] == ["d0", "d1", "d2"]
     g_v = pooled["methods"]["marginal"]["raw"]["g_v"]
-    assert g_v["coverage"] == pytest.approx(106 / 110)
-    assert g_v["coverage_ci"] == coverage_interval(106, 110)
+    assert g_v["coverage"] == pytest.approx(116 / 120)
+    assert g_v["coverage_ci"] == coverage_interval(116, 120)
     assert g_v["by_draw"] == [0.9, 1.0, 1.0]
-    assert pooled["methods"]["marginal"]["raw"]["goal"]["coverage"] == pytest.approx(103 / 110)
+    assert pooled["methods"]["marginal"]["raw"]["goal"]["coverage"] == pytest.approx(112 / 120)
     assert set(pooled["methods"]["marginal"]) == {"raw"}
-    two = pool_coverage({"a": _summary(0, 30, {"g_v": 1.0}), "b": _summary(1, 40, {"g_v": 0.9})})
-    assert two["methods"]["marginal"]["raw"]["g_v"]["coverage"] == pytest.approx(66 / 70)
     calibrated = pool_coverage(
         {
             "d0": _summary(0, 40, {"g_v": 0.9}, {"g_v": 0.95}),
@@ -55,29 +56,39 @@ def test_coverage_is_pooled_over_every_agent_of_the_draws_with_its_interval():
     assert table[-1].split() == ["g_v", "0.938", f"[{low:.3f},", f"{high:.3f}]", "0.950", "0.925"]
 
 
+def _changed(summary: dict, **fields) -> dict:
+    return {**summary, **fields}
+
+
+D0 = _summary(0, 40, {"g_v": 0.9})
+
+
 @pytest.mark.parametrize(
-    "summaries, message",
+    "other, message",
     [
-        ({"d0": _summary(0, 40, {"g_v": 0.9})}, r"^summaries: expected two recovery draws or more"),
-        (
-            {"d0": _summary(4, 40, {"g_v": 0.9}), "again": _summary(4, 40, {"g_v": 0.9})},
-            r"^again: the same draw as d0 \(seed 4: the same agents\)",
-        ),
-        (
-            {"d0": _summary(0, 40, {"g_v": 0.9}), "d1": _summary(1, 40, {"g_w": 0.9})},
-            r"^d1: fits methods and parameters marginal: g_w, d0 marginal: g_v; expected draws",
-        ),
-        (
-            {"d0": _summary(0, 40, {"g_v": 0.9}), "fit": {"command": "fit", "recordings": []}},
-            r"^fit: not a recovery experiment's summary .*expected n_agents and methods",
-        ),
-        (
-            {"d0": _summary(0, 40, {"g_v": 0.9}), "list": [1, 2]},
-            r"^list: not a recovery experiment's summary",
-        ),
+        (None, r"^summaries: expected two recovery draws or more, got 1$"),
+        (_summary(0, 40, {"g_v": 0.9}), r"^d1: the same draw as d0 \(seed 0\): expected draws of"),
+        (_changed(D0, seed=None), r"^d1: no seed recorded \(seed None\)"),
+        (_summary(1, 40, {"g_w": 0.9}), r"^d1: shape marginal: g_w, d0's marginal: g_v; expected"),
+        (_changed(D0, seed=1, n_trials=40), r"^d1: n_trials 40, d0's 100; expected draws of one"),
+        (_changed(D0, seed=1, command="demo"), r"^d1: command demo, d0's recover; expected"),
+        (_changed(D0, seed=1, checkpoint="r.pt"), r"^d1: checkpoint r.pt, d0's firefly2d;"),
+        (_summary(1, 30, {"g_v": 0.9}), r"^d1: n_agents 30, d0's 40; expected draws of one"),
+        ({"command": "fit", "recordings": []}, r"^d1: not a recovery experiment's summary .*≥ 1"),
+        ([1, 2], r"^d1: not a recovery experiment's summary"),
+        (_changed(D0, seed=1, n_agents=True), r"^d1: not a recovery experiment's summary"),
+        (_summary(1, 40, {"g_v": 0.91}), r"^d1: methods.marginal.parameters.g_v.coverage: expected "
+         r"a share of the 40 agents, got 0.91$"),
+        (_summary(1, 40, {"g_v": None}), r"^d1: methods.marginal.parameters.g_v.coverage: .*None"),
+        (_summary(1, 40, {"g_v": 1.5}), r"^d1: methods.marginal.parameters.g_v.coverage: .*1.5$"),
+        (_summary(1, 40, {"g_v": 0.9}, {"g_w": 0.9}),
+         r"^d1: methods.marginal.calibrated.parameters: expected scores of g_v$"),
+        (_changed(D0, seed=1, methods={"marginal": {"parameters": [1]}}),
+         r"^d1: methods.marginal.parameters: expected per-parameter scores$"),
     ],
-)
-def test_what_cannot_be_pooled_is_refused_naming_the_draw(summaries, message):
+)  # fmt: skip
+def test_what_cannot_be_pooled_is_refused_naming_the_draw_and_field(other, message):
+    summaries = {"d0": D0} if other is None else {"d0": D0, "d1": other}
     with pytest.raises(ValueError, match=message) as error:
         pool_coverage(summaries)
     assert "\n" not in str(error.value)
@@ -103,5 +114,15 @@ def test_irc_report_of_several_draws_prints_their_pooled_coverage_and_writes_not
         "summary.json",
     ]
     (tmp_path / "d1" / "summary.json").write_text(json.dumps(_summary(0, 40, {"g_v": 1.0})))
-    assert main(["report", *folders]) != 0
+    assert main(["report", *folders]) == 2
     assert "the same draw as" in capsys.readouterr().err
+    assert main(["report", folders[0], f"{tmp_path}/d1/../d0"]) == 2
+    assert (
+        f"DIR: {tmp_path}/d1/../d0 given twice; expected each draw once" in capsys.readouterr().err
+    )
+    setting_like = tmp_path / "lr=3e-3"  # a folder named like a setting is a folder
+    setting_like.mkdir()
+    (setting_like / "summary.json").write_text(json.dumps(_summary(5, 40, {"g_v": 1.0})))
+    assert main(["report", folders[0], str(setting_like)]) == 0
+    assert main(["report", folders[0], "runs/lr=3e-3"]) == 2
+    assert "error: no summary.json in runs/lr=3e-3" in capsys.readouterr().err

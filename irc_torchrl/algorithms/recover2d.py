@@ -94,7 +94,8 @@ __all__ = [
 ]
 
 #: the random streams of a run, each its own seed derived from the config's
-#: (:func:`~irc_torchrl.checks.derived_seed`; θ* are drawn with the config's seed itself)
+#: (:func:`~irc_torchrl.checks.derived_seed`; θ* are drawn with the config's seed itself);
+#: a value changed changes every draw's data
 SIMULATION, STARTS, PARTICLES, CALIBRATION = range(1, 5)
 
 
@@ -573,8 +574,8 @@ def _particle_check(
         "at_theta_hat": (result.theta_hat, result.nuisance),
         "at_theta_true": (theta_true, nuisance_true),
     }
+    seed = derived_seed(config.seed, PARTICLES)  # both points alike: their noise cancels
     for where, (theta, nuisance) in points.items():
-        seed = derived_seed(config.seed, PARTICLES)
         work = partial(particle_check, loss, held, theta, nuisance, config.particles, seed=seed)
         name = f"particles{config.particles}_{where}_{loss.method}"
         checks[where], took = stages.check(name, work, held.device)

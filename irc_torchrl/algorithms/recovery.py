@@ -9,6 +9,7 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable, Mapping
+from numbers import Real
 
 import scipy.stats
 import torch
@@ -156,84 +157,115 @@ def score_recovery(space: ThetaSpace, theta_true: torch.Tensor, result: FitResul
     return {"agents": agents, "parameters": parameters}
 
 
+#: what draws of one recovery experiment share (their seeds differ)
+EXPERIMENT = ("command", "task", "checkpoint", "n_agents", "n_trials", "mistaken")
+
+
 def pool_coverage(summaries: Mapping[str, Mapping]) -> dict:
     """Each method's coverage per parameter, raw and calibrated, pooled over the agents of
-    several recovery draws (``summaries`` by label, e.g. folder), with its Clopper-Pearson
-    interval and each draw's.
+    several draws of one recovery experiment (``summaries`` by label, e.g. folder), with its
+    Clopper-Pearson interval and each draw's.
 
     One draw of 40 agents lands inside [0.90, 0.98] with probability 0.82 even for exact
-    intervals, every one of 8 parameters with 0.2; pooled over five draws (200 agents) a
-    coverage is known to about ±0.03. The draws must differ (a draw counted twice counts its
-    agents twice) and fit the same methods and free parameters.
+    intervals, all of 8 independent parameters with 0.21; pooled over five draws (200 agents)
+    a coverage is known to about ±0.03. Within a draw the calibrated intervals share one
+    factor per parameter, so their pooled interval is somewhat too narrow: the spread over
+    draws is the honest measure there. The draws must share :data:`EXPERIMENT` and fit the same
+    methods and parameters, with different seeds (a draw counted twice counts its agents twice).
     """
     if len(summaries) < 2:
         raise ValueError(f"summaries: expected two recovery draws or more, got {len(summaries)}")
-    first_label, first = next(iter(summaries.items()))
-    shape = _pool_shape(first_label, first)
-    drawn: dict[object, str] = {}
+    draws = {label: _covered(label, summary) for label, summary in summaries.items()}
+    (first_label, first), seeds = next(iter(summaries.items())), {}
     for label, summary in summaries.items():
-        if _pool_shape(label, summary) != shape:
-            raise ValueError(
-                f"{label}: fits methods and parameters {_shown_shape(summary)}, {first_label} "
-                f"{_shown_shape(first)}; expected draws of one recovery experiment"
-            )
+        for key in (*EXPERIMENT, "shape"):
+            mine, theirs = _experiment(summary, key), _experiment(first, key)
+            if mine != theirs:
+                raise ValueError(
+                    f"{label}: {key} {mine}, {first_label}'s {theirs}; expected draws of one "
+                    "recovery experiment"
+                )
         seed = summary.get("seed")
-        if seed in drawn:
+        if seed is None or seed in seeds:
+            said = "no seed recorded" if seed is None else f"the same draw as {seeds[seed]}"
             raise ValueError(
-                f"{label}: the same draw as {drawn[seed]} (seed {seed}: the same agents), "
-                "whose agents would count twice; expected draws of different seeds"
+                f"{label}: {said} (seed {seed}): expected draws of different seeds, each "
+                "agent counted once"
             )
-        drawn[seed] = label
+        seeds[seed] = label
     agents = [int(s["n_agents"]) for s in summaries.values()]
     pooled: dict = {}
-    for method, names in shape:
-        for kind in ("raw", "calibrated"):
-            entries = [_scores(s["methods"][method], kind) for s in summaries.values()]
-            if any(e is None for e in entries):
-                continue
+    for method, kinds in next(iter(draws.values())).items():
+        for kind, names in kinds.items():
+            if any(kind not in draw[method] for draw in draws.values()):
+                continue  # calibrated in some draws only
             pooled.setdefault(method, {})[kind] = {
-                name: _pooled(
-                    [(e[name]["coverage"], n) for e, n in zip(entries, agents, strict=True)]
-                )
+                name: _pooled([draw[method][kind][name] for draw in draws.values()], agents)
                 for name in names
             }
     return {"draws": list(summaries), "n_agents": sum(agents), "methods": pooled}
 
 
-def _pool_shape(label: str, summary: Mapping) -> tuple:
-    """``((method, free names), ...)`` of a recovery summary, refused in one line where it is
-    not one."""
-    try:
-        int(summary["n_agents"])
-        return tuple((m, tuple(e["parameters"])) for m, e in summary["methods"].items())
-    except (KeyError, TypeError, AttributeError, ValueError):
+def _experiment(summary: Mapping, key: str) -> object:
+    """A summary's ``key`` of :data:`EXPERIMENT` (``shape``: its methods' free parameters)."""
+    if key == "shape":
+        return "; ".join(
+            f"{m}: {', '.join(e['parameters'])}" for m, e in summary["methods"].items()
+        )
+    return summary.get(key)
+
+
+def _covered(label: str, summary: Mapping) -> dict:
+    """``{method: {"raw"|"calibrated": {name: agents covered}}}`` of a recovery summary, each
+    count read off its coverage; refused in one line where the summary is not one."""
+    n = summary.get("n_agents") if isinstance(summary, Mapping) else None
+    methods = summary.get("methods") if isinstance(summary, Mapping) else None
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1 or not isinstance(methods, Mapping):
         raise ValueError(
             f"{label}: not a recovery experiment's summary (irc recover, irc demo --task "
-            "firefly2d): expected n_agents and methods with per-parameter coverage"
-        ) from None
+            "firefly2d): expected n_agents ≥ 1 and methods with per-parameter coverage"
+        )
+    covered: dict = {}
+    for method, entry in methods.items():
+        entry = entry if isinstance(entry, Mapping) else {}
+        raw = _counts(f"{label}: methods.{method}", entry, n)
+        covered[method] = {"raw": raw}
+        if entry.get("calibrated") is not None:
+            field = f"{label}: methods.{method}.calibrated"
+            covered[method]["calibrated"] = _counts(field, entry["calibrated"], n, tuple(raw))
+    return covered
 
 
-def _shown_shape(summary: Mapping) -> str:
-    return "; ".join(f"{m}: {', '.join(e['parameters'])}" for m, e in summary["methods"].items())
-
-
-def _scores(entry: Mapping, kind: str) -> Mapping | None:
-    """A method's per-parameter scores of its raw or calibrated intervals (``None``: the draw
-    was not calibrated)."""
-    if kind == "raw":
-        return entry["parameters"]
-    calibrated = entry.get("calibrated")
-    return None if calibrated is None else calibrated["parameters"]
-
-
-def _pooled(draws: list[tuple[float, int]]) -> dict:
-    """Coverage covered/n over draws given as (coverage, agents), with its interval."""
-    covered = [round(coverage * n) for coverage, n in draws]
-    n = sum(agents for _, agents in draws)
+def _counts(field: str, scores: object, n: int, names: tuple[str, ...] = ()) -> dict:
+    """``{name: agents covered}`` of one method's ``scores`` (with ``names``: those only)."""
+    parameters = scores.get("parameters") if isinstance(scores, Mapping) else None
+    scored = isinstance(parameters, Mapping) and bool(parameters)
+    if not scored or (names and tuple(parameters) != names):
+        expected = f"scores of {', '.join(names)}" if names else "per-parameter scores"
+        raise ValueError(f"{field}.parameters: expected {expected}")
     return {
-        "coverage": sum(covered) / n,
-        "coverage_ci": coverage_interval(sum(covered), n),
-        "by_draw": [coverage for coverage, _ in draws],
+        name: _count(f"{field}.parameters.{name}.coverage", score, n)
+        for name, score in parameters.items()
+    }
+
+
+def _count(field: str, score: object, n: int) -> int:
+    """How many of ``n`` agents a coverage ``score["coverage"]`` counts, refused where it is
+    not a count over ``n``."""
+    coverage = score.get("coverage") if isinstance(score, Mapping) else None
+    count = coverage * n if isinstance(coverage, Real) and not isinstance(coverage, bool) else -1
+    if not 0 <= count <= n or abs(count - round(count)) > 1e-6:
+        raise ValueError(f"{field}: expected a share of the {n} agents, got {coverage!r}")
+    return round(count)
+
+
+def _pooled(covered: list[int], agents: list[int]) -> dict:
+    """The coverage over all agents of draws that covered ``covered`` of their ``agents``,
+    with its interval and each draw's coverage."""
+    return {
+        "coverage": sum(covered) / sum(agents),
+        "coverage_ci": coverage_interval(sum(covered), sum(agents)),
+        "by_draw": [c / n for c, n in zip(covered, agents, strict=True)],
     }
 
 
