@@ -12,7 +12,6 @@ from __future__ import annotations
 import gzip
 import json
 import logging
-import os
 import re
 import shutil
 import signal
@@ -545,7 +544,7 @@ def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeyp
 
     def killed_at_the_second(trials, path, model):
         if path.name == "agent1.csv":
-            os.kill(os.getpid(), signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)  # to this thread (os.kill may reach another)
         write(trials, path, model)
 
     handler = signal.getsignal(signal.SIGTERM)
@@ -568,7 +567,7 @@ def test_an_interrupt_a_library_turns_into_another_error_still_reads_as_an_inter
 
     def converted(trials, path, model):
         try:
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)  # os.kill may reach another thread
         except KeyboardInterrupt as error:
             raise RuntimeError("Converting a tensordict to boolean value") from error
         write(trials, path, model)
