@@ -536,6 +536,20 @@ def test_simulating_a_lapse_rate_fit_cannot_reach_says_so(tmp_path, recwarn):
         assert main([*simulate, "--out", str(tmp_path / "b"), "lapse=0.5"]) == 0
 
 
+@pytest.fixture
+def default_signals():
+    """Python's own SIGINT and SIGTERM handlers for the test, as in a fresh ``irc`` process:
+    an earlier test in this worker may have left TorchRL's (its memmap storage installs one
+    at its first use, a host program's handler that irc then leaves as it stands)."""
+    kept = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    yield
+    for number, handler in kept.items():
+        signal.signal(number, handler)
+
+
+@pytest.mark.usefixtures("default_signals")
 def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeypatch, capsys):
     """kill (SIGTERM, a scheduler's time limit) ended the process where it stood, leaving a
     staging folder of half the recordings in --out; it now cleans up as Ctrl-C does."""
@@ -544,7 +558,7 @@ def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeyp
 
     def killed_at_the_second(trials, path, model):
         if path.name == "agent1.csv":
-            signal.raise_signal(signal.SIGTERM)  # to this thread (os.kill may reach another)
+            signal.raise_signal(signal.SIGTERM)
         write(trials, path, model)
 
     handler = signal.getsignal(signal.SIGTERM)
@@ -557,6 +571,7 @@ def test_a_terminated_simulate_cleans_up_as_an_interrupted_one(tmp_path, monkeyp
     assert signal.getsignal(signal.SIGTERM) is handler
 
 
+@pytest.mark.usefixtures("default_signals")
 def test_an_interrupt_a_library_turns_into_another_error_still_reads_as_an_interrupt(
     tmp_path, monkeypatch, capsys
 ):
@@ -567,7 +582,7 @@ def test_an_interrupt_a_library_turns_into_another_error_still_reads_as_an_inter
 
     def converted(trials, path, model):
         try:
-            signal.raise_signal(signal.SIGINT)  # os.kill may reach another thread
+            signal.raise_signal(signal.SIGINT)
         except KeyboardInterrupt as error:
             raise RuntimeError("Converting a tensordict to boolean value") from error
         write(trials, path, model)
