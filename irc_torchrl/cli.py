@@ -293,11 +293,17 @@ def _fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _is_setting(item: str) -> bool:
+    """Whether a positional item is a ``key=value`` setting: shaped like one and naming no
+    existing file or folder (a folder ``runs/lr=3e-3`` is a path)."""
+    return bool(KEY_VALUE.match(item)) and not Path(item).exists()
+
+
 def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     """``irc fit``'s recordings and its ``key=value`` settings: argparse gives every
     positional to FILE, and an item that names an existing file is a recording."""
     items = [*args.files, *args.overrides]
-    setting = [bool(KEY_VALUE.match(i)) and not Path(i).exists() for i in items]
+    setting = [_is_setting(i) for i in items]
     return (
         [i for i, s in zip(items, setting, strict=True) if not s],
         [i for i, s in zip(items, setting, strict=True) if s],
@@ -307,11 +313,13 @@ def _files_and_settings(args: argparse.Namespace) -> tuple[list[str], list[str]]
 def _report(args: argparse.Namespace) -> int:
     from irc_torchrl.plots import read_summary, report_run
 
-    for i, folder in enumerate(args.folders):
-        if re.fullmatch(r"[A-Za-z_][\w.]*=.*", folder) and not Path(folder).exists():
+    seen = set()
+    for folder in args.folders:
+        if _is_setting(folder):
             raise ValueError(f"DIR: {folder} is a setting; irc report takes run folders only")
-        if Path(folder).resolve() in {Path(f).resolve() for f in args.folders[:i]}:
+        if Path(folder).resolve() in seen:
             raise ValueError(f"DIR: {folder} given twice; expected each draw once")
+        seen.add(Path(folder).resolve())
     if len(args.folders) > 1:
         from irc_torchrl.algorithms.recovery import format_pooled, pool_coverage
 
