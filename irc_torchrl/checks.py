@@ -13,7 +13,13 @@ import numpy as np
 import torch
 
 __all__ = [
+    "CALIBRATION",
+    "INFORMATION",
+    "PARTICLES",
     "SEED_LIMIT",
+    "SIMULATION",
+    "STARTS",
+    "STREAMS_VERSION",
     "check_fields",
     "count",
     "derived_seed",
@@ -118,6 +124,14 @@ def seed(field: str, value: int) -> int:
     if isinstance(number, bool) or not isinstance(number, Integral) or not 0 <= number < 2**64:
         raise ValueError(f"{field}: expected an integer in [0, 2**64), got {shown(value)}")
     return int(number)
+
+
+#: the random streams of a seeded run, each its own seed from :func:`derived_seed` (a draw of
+#: θ from the prior takes the run's seed itself); a value changed changes every run's data
+SIMULATION, STARTS, PARTICLES, CALIBRATION, INFORMATION = range(1, 6)
+#: the version of those streams, which recovery summaries record so that draws of different
+#: data are never pooled (1: each stream the seed plus a constant; 2: :func:`derived_seed`)
+STREAMS_VERSION = 2
 
 
 def derived_seed(seed: int, *stream: int) -> int:

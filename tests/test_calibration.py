@@ -25,11 +25,19 @@ from irc_torchrl.algorithms.calibration import (
 )
 from irc_torchrl.algorithms.ensemble import load_ensemble_policy
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
-from irc_torchrl.algorithms.recover2d import Recovery2DConfig, recover_firefly2d
-from irc_torchrl.algorithms.recovery import score_recovery
+from irc_torchrl.algorithms.recordings import simulate_recordings
+from irc_torchrl.algorithms.recover2d import Recovery2DConfig, predicted_widths, recover_firefly2d
+from irc_torchrl.algorithms.recovery import recover_agents, score_recovery
 from irc_torchrl.algorithms.simulate import boltzmann_policy, motor_noise_policy, simulate_agents
-from irc_torchrl.checks import derived_seed
-from irc_torchrl.config import FitConfig
+from irc_torchrl.checks import (
+    CALIBRATION,
+    INFORMATION,
+    PARTICLES,
+    SIMULATION,
+    STARTS,
+    derived_seed,
+)
+from irc_torchrl.config import AgentsConfig, FitConfig, SimulateConfig
 from irc_torchrl.data.trajectories import TRIAL_KEYS
 from irc_torchrl.envs.firefly2d import Firefly2DModel
 from irc_torchrl.envs.model import sensed_world
@@ -571,7 +579,7 @@ def test_a_recovery_calibrates_each_method_on_refits_simulated_at_the_last_metho
         assert torch.equal(theta, marginal.theta_hat) and torch.equal(at, world)
         assert n_trials == 3
     seeds = [seed for *_, seed in simulated]
-    assert seeds == [derived_seed(config.seed, recover2d.CALIBRATION, i) for i in range(10)]
+    assert seeds == [derived_seed(config.seed, CALIBRATION, i) for i in range(10)]
     assert len(set(seeds)) == 10
     actor, model, _ = load_ensemble_policy("firefly2d")
     action_model = recover2d._recovery_action_model(config, actor, model)
@@ -599,8 +607,8 @@ def test_neighbouring_seeds_derive_streams_that_share_no_seed():
     draw 5's dataset i), every derived seed is one torch takes, and a seed derives the same
     seeds on every machine."""
     streams = {
-        draw: [derived_seed(draw, recover2d.CALIBRATION, i) for i in range(80)]
-        + [derived_seed(draw, s) for s in (recover2d.SIMULATION, recover2d.STARTS)]
+        draw: [derived_seed(draw, CALIBRATION, i) for i in range(80)]
+        + [derived_seed(draw, s) for s in (SIMULATION, STARTS)]
         for draw in range(10)
     }
     every = [seed for seeds in streams.values() for seed in seeds]
@@ -609,7 +617,47 @@ def test_neighbouring_seeds_derive_streams_that_share_no_seed():
     torch.Generator().manual_seed(max(every))
     # pinned: a change of the construction would change every draw's data
     assert derived_seed(0, 1) == 1445747666553143162
-    assert derived_seed(4, recover2d.CALIBRATION, 0) == 4283610659707493945
+    assert derived_seed(4, CALIBRATION, 0) == 4283610659707493945
+
+
+class _Seen(Exception):
+    """Raised by a stand-in once it has seen the seed it was given: the run need go no further."""
+
+
+def test_every_command_draws_its_noise_from_streams_derived_from_its_seed(
+    monkeypatch, tmp_path, firefly1d_model, trained_q
+):
+    """``irc simulate``, the 1D recovery and ``predicted_widths`` took ``seed + 1`` (and the
+    1D fit's starts ``seed + 2``, the widths' Fisher draws the seed of θ* itself): the seed
+    that draws the next run's θ*. Each stream is now derived from the run's seed, as the 2D
+    recovery's are."""
+    seen = []
+
+    def stand_in(*args, seed, **kwargs):
+        seen.append(seed)
+        raise _Seen
+
+    def simulate(*args, seed, **kwargs):
+        seen.append(seed)
+        return simulate_agents(*args, seed=seed, **kwargs)
+
+    monkeypatch.setattr("irc_torchrl.algorithms.recordings.simulate_agents", stand_in)
+    config = SimulateConfig(n_agents=1, n_trials=1)
+    with pytest.raises(_Seen):
+        simulate_recordings(config, tmp_path, seed=4, progress=False)
+    monkeypatch.setattr("irc_torchrl.algorithms.recovery.simulate_agents", simulate)
+    monkeypatch.setattr("irc_torchrl.algorithms.recovery.fit_theta", stand_in)
+    agents = AgentsConfig(n_agents=1, n_trials=1)
+    with pytest.raises(_Seen):
+        recover_agents(firefly1d_model, trained_q, agents, FitConfig(), seed=4)
+    monkeypatch.setattr(recover2d, "expected_intervals", stand_in)
+    actor, model, _ = load_ensemble_policy("firefly2d")
+    with pytest.raises(_Seen):
+        predicted_widths(model, actor, n_trials=(1,), n_agents=1, seed=4)
+    assert seen == [derived_seed(4, stream) for stream in (SIMULATION, SIMULATION, STARTS)] + [
+        derived_seed(4, INFORMATION)
+    ]
+    assert not set(seen) & {4, 5, 6}
 
 
 def test_a_fit_result_prints_one_line_per_agent(space2d):
@@ -660,4 +708,4 @@ def test_the_particle_check_scores_the_truth_at_the_agents_own_motor_noise(monke
     assert torch.equal(hat_noise, results["marginal"].nuisance)
     assert torch.equal(at_true, trials["theta"][:, 0, 0])
     assert torch.allclose(true_noise.exp(), torch.tensor(0.1, dtype=true_noise.dtype))
-    assert seed == same_seed == derived_seed(config.seed, recover2d.PARTICLES)
+    assert seed == same_seed == derived_seed(config.seed, PARTICLES)

@@ -152,7 +152,8 @@ def test_fit_of_the_csv_recovers_the_gains(fitted):
 
 def test_fit_names_the_trials_its_theta_explains_worst(simulated, tmp_path):
     """A trial whose turning commands were flipped (an export glitch) heads the list of the
-    trials θ̂ explains worst, by its own trial number; beliefs.npz holds every trial's
+    trials θ̂ explains worst, by its own trial number, well below the median trial (0.64 nats
+    per step on these data; the next worst 0.43); beliefs.npz holds every trial's
     log-likelihood, which add up to the fit's."""
     lines = (simulated / "agent0.csv").read_text().splitlines()
     header = lines[0].split(",")
@@ -172,7 +173,7 @@ def test_fit_names_the_trials_its_theta_explains_worst(simulated, tmp_path):
     worst = agent["worst_trials"]
     assert [w["trial"] for w in worst][0] == 7.0 and len(worst) == 3
     assert [w["per_step"] for w in worst] == sorted(w["per_step"] for w in worst)
-    assert worst[0]["per_step"] < worst[0]["median_per_step"] - 1
+    assert worst[0]["per_step"] < worst[0]["median_per_step"] - 0.5
     assert worst[0]["per_step"] == pytest.approx(worst[0]["log_likelihood"] / worst[0]["steps"])
     with np.load(out / "beliefs.npz") as beliefs:
         per_trial = beliefs["glitch/trial_log_likelihood"]
@@ -1206,16 +1207,16 @@ def _trials_of(simulated: Path, path: Path, trials: list[int]) -> Path:
 def test_recordings_of_interleaved_trial_counts_each_get_their_own_fit(
     simulated, tmp_path, monkeypatch
 ):
-    """Recordings of 3, 2, 2 and 3 trials, fitted in two batches ([a, d], d padded to a's 23
-    steps, then [b, c]): each method's log-likelihood, recomputed on the recording alone at
-    its θ̂ (float64 actor: to round-off), its trials' log-likelihoods, beliefs, particle
-    check and calibrated intervals are its own recording's; g_w is held at the given 0.9;
-    marginal starts from each agent's map θ̂."""
+    """Recordings of 3, 2, 2 and 3 trials, fitted in two batches ([a, d], d padded to a's 27
+    steps, then [b, c], c padded to b's 27): each method's log-likelihood, recomputed on the
+    recording alone at its θ̂ (float64 actor: to round-off), its trials' log-likelihoods,
+    beliefs, particle check and calibrated intervals are its own recording's; g_w is held at
+    the given 0.9; marginal starts from each agent's map θ̂."""
     picks = {"a": [4, 5, 7], "b": [10, 12], "c": [1, 3], "d": [2, 14, 17]}
     files = [_trials_of(simulated, tmp_path / f"{n}.csv", t) for n, t in picks.items()]
     actor, model, _ = recordings.load_ensemble_policy("firefly2d")
     records = [read_trials(path, model) for path in files]
-    assert [r.shape[1] for r in records] == [23, 18, 20, 17]
+    assert [r.shape[1] for r in records] == [27, 27, 16, 24]
     calls = []
 
     def spy(loss, held, **kwargs):
@@ -1239,7 +1240,7 @@ def test_recordings_of_interleaved_trial_counts_each_get_their_own_fit(
     summary = recordings.fit_recordings(files, out, config, method="both", free=["g_v"])
     assert summary["free"] == ["g_v"] and summary["fixed"]["g_w"] == pytest.approx(0.9)
     assert [(method, mask.shape) for method, mask, _ in calls] == [
-        ("map", (2, 3, 23)), ("marginal", (2, 3, 23)), ("map", (2, 2, 20)), ("marginal", (2, 2, 20))
+        ("map", (2, 3, 27)), ("marginal", (2, 3, 27)), ("map", (2, 2, 27)), ("marginal", (2, 2, 27))
     ]  # fmt: skip
     batches = {0: (0, 0), 3: (0, 1), 1: (2, 0), 2: (2, 1)}  # recording: (map's call, row)
     for i, (call, row) in batches.items():  # padded steps are not recorded

@@ -294,11 +294,14 @@ def test_demo_writes_a_reproducible_summary_and_figures(tmp_path, capsys):
     for key in ("theta_true", "theta_hat", "ci_low", "ci_high"):
         assert set(agent[key]) == {"g_a", "log_sigma0", "goal_radius", "move_cost"}
     assert agent["ci_low"]["g_a"] <= agent["theta_hat"]["g_a"] <= agent["ci_high"]["g_a"]
-    # the fitted softmax temperature by name, in its natural unit, with its interval
+    # the fitted softmax temperature by name, in its natural unit, with its interval; where
+    # the information does not bound it (one agent's, of this one-round Q) it runs from 0 to ∞
+    # (null)
     for agent in summary["agents"]:
         assert agent["temperature"] == pytest.approx(math.exp(agent["nuisance"][0]), rel=1e-12)
         low, high = agent["temperature_ci"]
-        assert 0 < low < agent["temperature"] < high
+        assert low == 0 if high is None else 0 < low < agent["temperature"] < high
+    assert sum(agent["temperature_ci"][1] is None for agent in summary["agents"]) == 1
     assert set(summary["parameters"]) == {"g_a", "log_sigma0"}
     for stats in summary["parameters"].values():
         assert 0 <= stats["coverage"] <= 1 and stats["median_ci_width"] > 0

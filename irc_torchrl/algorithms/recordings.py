@@ -49,7 +49,7 @@ from irc_torchrl.algorithms.runtime import (
 )
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
-from irc_torchrl.checks import derived_seed, real
+from irc_torchrl.checks import CALIBRATION, SIMULATION, derived_seed, real
 from irc_torchrl.config import RecordingFitConfig, SimulateConfig, config_to_dict
 from irc_torchrl.data.files import (
     earlier_summary,
@@ -157,7 +157,7 @@ def simulate_recordings(
             theta.to(target),
             config.n_trials,
             worlds.to(target),
-            seed=seed + 1,
+            seed=derived_seed(seed, SIMULATION),
             progress=lambda i, n: bar.update(i - bar.n),
         ).cpu()
         bar.close()
@@ -666,7 +666,7 @@ def _calibrate_fits(
             rows = torch.tensor(members, device=result.theta_hat.device)
             simulated = simulate_at_fits(
                 model, actor, action_model, result.select(rows), world[rows], n_trials,
-                derived_seed(seed, k, g), config.senses,
+                derived_seed(seed, CALIBRATION, k, g), config.senses,
             )  # fmt: skip
             for j, i in enumerate(members):
                 synthetic[i] = simulated[j].select(*TRIAL_KEYS)

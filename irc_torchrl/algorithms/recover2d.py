@@ -52,7 +52,19 @@ from irc_torchrl.algorithms.runtime import check_workers, finish, resolve_device
 from irc_torchrl.algorithms.simulate import motor_noise_policy, simulate_agents
 from irc_torchrl.algorithms.stages import Stages, fit_settings, format_resumed, stage_key
 from irc_torchrl.checkpoint import resolve_checkpoint
-from irc_torchrl.checks import check_fields, derived_seed, non_negative, one_of, probability
+from irc_torchrl.checks import (
+    CALIBRATION,
+    INFORMATION,
+    PARTICLES,
+    SIMULATION,
+    STARTS,
+    STREAMS_VERSION,
+    check_fields,
+    derived_seed,
+    non_negative,
+    one_of,
+    probability,
+)
 from irc_torchrl.config import (
     FitConfig,
     RecordingFitConfig,
@@ -92,11 +104,6 @@ __all__ = [
     "state_layout",
     "write_recovery",
 ]
-
-#: the random streams of a run, each its own seed derived from the config's
-#: (:func:`~irc_torchrl.checks.derived_seed`; θ* are drawn with the config's seed itself);
-#: a value changed changes every draw's data
-SIMULATION, STARTS, PARTICLES, CALIBRATION = range(1, 5)
 
 
 @dataclass
@@ -276,7 +283,8 @@ def predicted_widths(
     space = model.theta_space
     widths = {}
     for n in n_trials:
-        intervals = expected_intervals(loss, trials[:, :n].select(*TRIAL_KEYS), theta, seed=seed)
+        held = trials[:, :n].select(*TRIAL_KEYS)
+        intervals = expected_intervals(loss, held, theta, seed=derived_seed(seed, INFORMATION))
         median = (intervals.high - intervals.low)[:, space.free_mask].median(0).values
         widths[n] = dict(zip(space.free_names, median.tolist(), strict=True))
     return widths
@@ -379,6 +387,7 @@ def recover_firefly2d(
     summary: dict = {
         "task": config.task,
         "seed": config.seed,
+        "streams": STREAMS_VERSION,
         "checkpoint": config.checkpoint,
         "n_agents": n_agents,
         "n_trials": config.n_trials,

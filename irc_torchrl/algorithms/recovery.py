@@ -17,7 +17,7 @@ from tensordict import TensorDict
 
 from irc_torchrl.algorithms.fit import FitResult, fit_theta
 from irc_torchrl.algorithms.simulate import boltzmann_policy, simulate_agents
-from irc_torchrl.checks import module_device
+from irc_torchrl.checks import SIMULATION, STARTS, derived_seed, module_device
 from irc_torchrl.config import AgentsConfig, FitConfig
 from irc_torchrl.envs.model import TaskModel
 from irc_torchrl.modules.likelihood import BoltzmannActionModel
@@ -57,7 +57,9 @@ def recover_agents(
     theta_true = theta_true.to(device)
     task_theta = space.default(device=device) if agents.world == "known" else None
     policy = boltzmann_policy(model, q_network, agents.temperature)
-    trials = simulate_agents(model, policy, theta_true, agents.n_trials, task_theta, seed=seed + 1)
+    trials = simulate_agents(
+        model, policy, theta_true, agents.n_trials, task_theta, seed=derived_seed(seed, SIMULATION)
+    )
     simulated = time.perf_counter()
     action_model = BoltzmannActionModel(q_network, agents.temperature)
     loss = InverseRationalLoss(model, action_model, n_agents=agents.n_agents, world=agents.world)
@@ -70,7 +72,7 @@ def recover_agents(
         curvature=fit.curvature,
         covariance=fit.covariance,
         intervals=fit.intervals,
-        seed=seed + 2,
+        seed=derived_seed(seed, STARTS),
         progress=progress,
         workers=fit.workers,
     )
@@ -157,8 +159,9 @@ def score_recovery(space: ThetaSpace, theta_true: torch.Tensor, result: FitResul
     return {"agents": agents, "parameters": parameters}
 
 
-#: what draws of one recovery experiment share (their seeds differ)
-EXPERIMENT = ("command", "task", "checkpoint", "n_agents", "n_trials", "mistaken")
+#: what draws of one recovery experiment share (their seeds differ), ``streams`` the version
+#: of the random streams a seed derives (:data:`~irc_torchrl.checks.STREAMS_VERSION`)
+EXPERIMENT = ("command", "task", "checkpoint", "n_agents", "n_trials", "mistaken", "streams")
 
 
 def pool_coverage(summaries: Mapping[str, Mapping]) -> dict:
@@ -207,7 +210,10 @@ def pool_coverage(summaries: Mapping[str, Mapping]) -> dict:
 
 
 def _experiment(summary: Mapping, key: str) -> object:
-    """A summary's ``key`` of :data:`EXPERIMENT` (``shape``: its methods' free parameters)."""
+    """A summary's ``key`` of :data:`EXPERIMENT` (``shape``: its methods' free parameters;
+    ``streams`` unrecorded in summaries written before it was)."""
+    if key == "streams":
+        return summary.get(key, "unrecorded")
     if key == "shape":
         return "; ".join(
             f"{m}: {', '.join(e['parameters'])}" for m, e in summary["methods"].items()
