@@ -317,9 +317,10 @@ def _report(args: argparse.Namespace) -> int:
     for folder in args.folders:
         if _is_setting(folder):
             raise ValueError(f"DIR: {folder} is a setting; irc report takes run folders only")
-        if Path(folder).resolve() in seen:
+        resolved = Path(folder).resolve()
+        if resolved in seen:
             raise ValueError(f"DIR: {folder} given twice; expected each draw once")
-        seen.add(Path(folder).resolve())
+        seen.add(resolved)
     if len(args.folders) > 1:
         from irc_torchrl.algorithms.recovery import format_pooled, pool_coverage
 
