@@ -325,6 +325,22 @@ def test_bad_inputs_give_clear_errors():
         env.step(td.set("action", torch.full((2, 2), 1.5)))
     with pytest.raises(ValueError, match="theta: obs_sigma_v=-1"):
         env.reset(theta=SPACE.default().index_put((torch.tensor(4),), torch.tensor(-1.0)))
+    # a θ edited in the TensorDict between steps: refused before the world or the belief moves
+    td = env.reset().set("action", torch.zeros(2, 2))
+    for key, message in (
+        ("theta", "theta: g_w=-1 is outside its space"),
+        ("task_theta", "task_theta: g_w=-1 is outside its space"),
+    ):
+        edited = td.clone()
+        edited[key][1, 1] = -1.0
+        with pytest.raises(ValueError, match=message):
+            env.step(edited)
+    edited = td.clone().set("theta", torch.full((2, 9), float("nan")))
+    with pytest.raises(ValueError, match="theta: g_v=nan is outside its space"):
+        env.step(edited)
+    with pytest.raises(ValueError, match=r"task_theta: expected shape \[2, 9\], got \[2, 8\]"):
+        env.step(td.clone().set("task_theta", torch.zeros(2, 8)))
+    assert torch.equal(env.step(td.clone())["next", "theta"], td["theta"])  # in its space: steps
 
 
 def test_the_joseph_update_is_the_error_covariance_for_any_gain():

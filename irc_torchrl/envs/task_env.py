@@ -179,13 +179,27 @@ class TaskEnv(EnvBase):
         noise = self._sample_noise(self.model.observation_cov(state, task_theta))
         return self.model.observe(state, task_theta) + noise
 
-    def _check_action(self, action: torch.Tensor) -> None:
-        """Raise a one-line error unless ``action`` has the spec's shape and in-bound values."""
-        spec = self.action_spec
+    def _check_step_inputs(
+        self, action: torch.Tensor, theta: torch.Tensor, task_theta: torch.Tensor
+    ) -> None:
+        """Raise a one-line error unless ``action`` has the spec's shape and in-bound values
+        and both θ lie in their space: a θ edited in the TensorDict between steps is refused
+        as the constructor and ``reset`` refuse it, before the world or the belief moves."""
+        spec, space = self.action_spec, self.model.theta_space
         if action.shape != spec.shape:
             raise ValueError(f"action: expected shape {list(spec.shape)}, got {list(action.shape)}")
-        if bool(action_in_spec(spec, action).all()):  # a comparison fails on NaN too
+        expected = torch.Size((*self.batch_size, space.dim))
+        for field, value in (("theta", theta), ("task_theta", task_theta)):
+            if value.shape != expected:
+                raise ValueError(
+                    f"{field}: expected shape {list(expected)}, got {list(value.shape)}"
+                )
+        inside = ~(space.outside(theta) | space.outside(task_theta)).any()
+        # one sync for all three (a comparison fails on NaN too)
+        if bool(action_in_spec(spec, action).all() & inside):
             return
+        space.validate(theta, "theta")
+        space.validate(task_theta, "task_theta")
         if action.is_floating_point() and not torch.isfinite(action).all():
             raise ValueError("action: expected finite values, got NaN or inf")
         raise ValueError(
@@ -213,8 +227,8 @@ class TaskEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         m = self.model
         state, action, step = tensordict["state"], tensordict["action"], tensordict["step"]
-        self._check_action(action)
         task_theta, target = tensordict["task_theta"], tensordict["target"]
+        self._check_step_inputs(action, tensordict["theta"], task_theta)
         stop = m.stops(action, step)
         reward = m.reward(state, target, action, stop, task_theta)
         next_state = m.transition(state, action, task_theta)
