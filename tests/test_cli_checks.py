@@ -428,6 +428,39 @@ def test_a_fit_converged_early_ends_its_progress_bar_at_100_percent():
     assert shown.getvalue().rstrip().split("\r")[-1].startswith("fit: 100%|##########| 41/41 ")
 
 
+def test_each_stage_of_a_recovery_ends_its_progress_bar_when_the_next_begins(tmp_path, monkeypatch):
+    """The simulation's bar stayed open through the fits, its clock and rate running on
+    ('simulate: 60/60 [02:30, 2.51s/it]' for a simulation of seconds)."""
+    from tensordict import TensorDict
+
+    events = []
+
+    class Bar:
+        def __init__(self, total: int, desc: str, disable: bool) -> None:
+            self.desc, self.n, self.total = desc, 0, total
+            events.append(("open", desc))
+
+        def update(self, n: int) -> None:
+            self.n += n
+
+    def stages(config, progress, model, kept):
+        for stage, n in (("simulate", 3), ("map", 2), ("marginal", 2)):
+            for i in range(n):
+                progress(stage, i, n)
+        return TensorDict(), {}, {}
+
+    monkeypatch.setattr(recover2d, "tqdm", Bar)
+    monkeypatch.setattr(recover2d, "finish", lambda bar: events.append(("finish", bar.desc)))
+    monkeypatch.setattr(recover2d, "recover_firefly2d", stages)
+    monkeypatch.setattr(recover2d, "write_recovery", lambda *args: None)
+    recover2d.run_recovery(recover2d.Recovery2DConfig(), tmp_path, keep=False)
+    assert events == [
+        (kind, desc)
+        for desc in ("simulate", "fit (map)", "fit (marginal)")
+        for kind in ("open", "finish")
+    ]
+
+
 def test_a_notebook_progress_bar_ended_early_fills_its_widget():
     """tqdm.notebook draws the bar as a widget whose length is set only when the bar is made,
     so a fit converged early showed a bar half full beside '100%'."""

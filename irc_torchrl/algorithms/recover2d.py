@@ -649,6 +649,11 @@ def run_recovery(
 
         def progress(method: str, i: int, n: int) -> None:
             if method not in bars:
+                # the stages run one after another: the last one's bar ends where it stopped,
+                # not with its time and rate running on through the stages after it
+                for bar in bars.values():
+                    finish(bar)
+                bars.clear()
                 desc = method if method == "simulate" else f"fit ({method})"
                 bars[method] = tqdm(total=n, desc=desc, disable=not show_progress)
             bars[method].update(1)
