@@ -123,7 +123,9 @@ def _train(args: argparse.Namespace) -> int:
         saved = load_checkpoint(args.resume)["config"]
         base = {key: value for key, value in saved.items() if key not in ("device", "task")}
     options = _option_settings(args, skip=("seed",))  # the seed goes to train_ensemble
-    config = load_firefly2d_config(args.config, args.overrides, model, base, options)
+    config = load_firefly2d_config(
+        args.config, args.overrides, model, base, options, fresh=args.resume is None
+    )
     _check_sendable(args.model, "ddpg.collector_workers", config.ddpg.collector_workers)
     result = train_ensemble(
         config,

@@ -391,9 +391,10 @@ def load_firefly2d_config(
     model: TaskModel | None = None,
     base: Mapping[str, Any] | None = None,
     options: Mapping[str, Any] | None = None,
+    fresh: bool = True,
 ) -> Firefly2DConfig:
     """The ensemble-training config: embedded default, then the YAML file, then ``key=value``,
-    then ``options``.
+    then ``options``; ``fresh`` as in :meth:`Firefly2DConfig.validate` (``False`` resuming).
 
     ``model``: a task of the user's own; the default then names it as its task and warms up
     with random actions (the pursuit controller knows the 2D firefly only) (``None``: the 2D
@@ -408,7 +409,7 @@ def load_firefly2d_config(
             config.ddpg.warmup_policy = "random"
     for key, value in (base or {}).items():
         _set(config, key, value, config)
-    return _update(config, path, overrides, options).validate(model)
+    return _update(config, path, overrides, options).validate(model, fresh)
 
 
 def load_simulate_config(overrides: Sequence[str] = ()) -> SimulateConfig:

@@ -108,6 +108,43 @@ def test_a_pursuit_warmup_too_short_for_an_n_step_transition_is_refused():
         load_firefly2d_config(overrides=["ddpg.warmup_frames=256", *other.split()])
 
 
+def test_a_resumed_run_and_a_checkpoint_read_back_take_any_warmup_length(tmp_path, monkeypatch):
+    """A resumed run collects no pursuit warm-up (its own policy refills the buffer), so its
+    short ``ddpg.warmup_frames`` was refused for nothing, by ``irc train --resume`` and by
+    ``train_ensemble(resume=...)``; a checkpoint of such a run could not be read back."""
+    from irc_torchrl import cli
+    from irc_torchrl.algorithms import ensemble
+    from irc_torchrl.checkpoint import resolve_checkpoint
+
+    short = ["ddpg.warmup_frames=64"]
+    with pytest.raises(ValueError, match="ddpg.warmup_frames must be at least 257"):
+        load_firefly2d_config(overrides=short)
+    assert load_firefly2d_config(overrides=short, fresh=False).ddpg.warmup_frames == 64
+    saved = torch.load(resolve_checkpoint("firefly2d"), weights_only=True)
+    saved["config"]["ddpg"]["warmup_frames"] = 64
+    torch.save(saved, tmp_path / "short.pt")
+    started = []
+    monkeypatch.setattr(ensemble, "_train", lambda config, *args: started.append(config))
+    config = load_firefly2d_config(fresh=False, overrides=short)
+    with pytest.raises(ValueError, match="ddpg.warmup_frames must be at least 257"):
+        ensemble.train_ensemble(config)
+    ensemble.train_ensemble(config, resume=tmp_path / "short.pt")
+
+    class Started(Exception):
+        """``irc train`` handed its config on to ``train_ensemble``."""
+
+    def start(config, **kwargs):
+        started.append(config)
+        raise Started
+
+    monkeypatch.setattr(ensemble, "train_ensemble", start)
+    with pytest.raises(Started):
+        cli.main(["train", "--resume", str(tmp_path / "short.pt"), "--out", str(tmp_path)])
+    assert [c.ddpg.warmup_frames for c in started] == [64, 64]
+    actor, _, _ = ensemble.load_ensemble_policy(tmp_path / "short.pt")
+    assert actor is not None
+
+
 def test_tensorboard_absent_is_warned_of_once_and_csv_written(monkeypatch, tmp_path):
     """``logger=tensorboard`` without TensorBoard wrote CSV without a word."""
     import torchrl.record.loggers as loggers

@@ -228,10 +228,12 @@ class Firefly2DConfig:
     ddpg: DDPGConfig = field(default_factory=DDPGConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
 
-    def validate(self, model: TaskModel | None = None) -> Firefly2DConfig:
+    def validate(self, model: TaskModel | None = None, fresh: bool = True) -> Firefly2DConfig:
         """Return ``self`` if every field is usable, else raise a one-line error naming it.
 
         ``model`` is the task of the user's own the config trains (``None``: the 2D firefly).
+        ``fresh``: the config starts a run from scratch; a resumed run (or a checkpoint's
+        config read back) runs no pursuit warm-up, so that warm-up's length is not checked.
         """
         check_fields(self)
         d, e = self.ddpg, self.evaluation
@@ -331,7 +333,8 @@ class Firefly2DConfig:
                 f"ddpg.warmup_policy={d.warmup_policy!r} does not run; expected 0, "
                 f"got {d.bc_weight}"
             )
-        _check_warmup(d)
+        if fresh:
+            _check_warmup(d)
         one_of("logger", self.logger, ("csv", "tensorboard", "none"))
         if model is None:
             make_model(self)  # theta_fixed: unknown names and out-of-range values
@@ -744,7 +747,7 @@ def train_ensemble(
         config.seed = int(seed)
     if _check_model(model) is not None:
         config.task = model.name
-    config.validate(model)
+    config.validate(model, fresh=resume is None)
     if model is not None:
         _check_trainable(config, model)
     device = resolve_device(config.device)
@@ -1243,7 +1246,7 @@ def _load(
     task = TASK if _check_model(model) is None else model.name
     ckpt = load_checkpoint(source, task=task, required=required)
     try:
-        config = config_from_dict(ckpt["config"]).validate(model)
+        config = config_from_dict(ckpt["config"]).validate(model, fresh=False)
     except (TypeError, ValueError) as error:
         raise ValueError(
             f"checkpoint {ckpt['path']}: entry config is not a config irc train writes ({error})"
