@@ -112,6 +112,7 @@ class ThetaSpace:
                 f"ThetaSpace: fixed must be a {{name: value}} mapping, got {shown(fixed)}"
             )
         self.fixed = {name: self._fixed_value(name, value) for name, value in (fixed or {}).items()}
+        self._bounds_cache: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, ...]] = {}
 
     def _fixed_value(self, name: str, value: object) -> float:
         """``value`` as a plain float within ``name``'s range (a tensor or numpy scalar would
@@ -211,6 +212,20 @@ class ThetaSpace:
         values = [self.fixed.get(p.name, p.default) for p in self.parameters]
         return torch.tensor(values, dtype=dtype, device=device)
 
+    def _bounds(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(low, high)`` in ``like``'s dtype and device, built once per pair: the env checks
+        and normalises θ at every step, and a device's bounds would otherwise be copied there
+        each time. Internal: callers of :meth:`low` and :meth:`high` get tensors of their own."""
+        key = (like.dtype, like.device)
+        if key not in self._bounds_cache:
+            with torch.inference_mode(False):  # usable in autograd if first built in a rollout
+                self._bounds_cache[key] = (self.low(*key), self.high(*key))
+        return self._bounds_cache[key]
+
+    def __getstate__(self) -> dict:
+        # a worker process builds its own bounds (a pickled CUDA tensor would start CUDA there)
+        return {**self.__dict__, "_bounds_cache": {}}
+
     # --- free and fixed --------------------------------------------------------------------
     def fix(self, **values: float) -> ThetaSpace:
         """A copy with the named parameters held at the given values (real numbers, stored as
@@ -265,7 +280,7 @@ class ThetaSpace:
     def outside(self, theta: torch.Tensor) -> torch.Tensor:
         """Which components of ``theta [..., dim]`` are not finite or lie outside their bounds
         (beyond the tolerance), ``[..., dim]``."""
-        low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
+        low, high = self._bounds(theta)
         slack = self.tolerance * (high - low)
         return ~torch.isfinite(theta) | (theta < low - slack) | (theta > high + slack)
 
@@ -273,7 +288,7 @@ class ThetaSpace:
     def to_unconstrained(self, theta: torch.Tensor) -> torch.Tensor:
         """Natural units to unconstrained reals (a scaled logit per parameter)."""
         self._check_shape(theta, "theta")
-        low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
+        low, high = self._bounds(theta)
         eps = torch.finfo(theta.dtype).eps ** 0.5
         p = ((theta - low) / (high - low)).clamp(eps, 1 - eps)
         return torch.logit(p)
@@ -282,20 +297,20 @@ class ThetaSpace:
         """Unconstrained reals to natural units; from ±40 on (an interval's end with no bound
         from the data) the bound itself, where the logistic is within 4e-18 of it."""
         self._check_shape(u, "theta (unconstrained)")
-        low, high = self.low(u.dtype, u.device), self.high(u.dtype, u.device)
+        low, high = self._bounds(u)
         natural = low + (high - low) * torch.sigmoid(u)
         return torch.where(u <= -_ENDS, low, torch.where(u >= _ENDS, high, natural))
 
     def normalise(self, theta: torch.Tensor) -> torch.Tensor:
         """Natural units to the box [-1, 1], the form networks read."""
         self._check_shape(theta, "theta")
-        low, high = self.low(theta.dtype, theta.device), self.high(theta.dtype, theta.device)
+        low, high = self._bounds(theta)
         return 2 * (theta - low) / (high - low) - 1
 
     def denormalise(self, z: torch.Tensor) -> torch.Tensor:
         """The box [-1, 1] to natural units."""
         self._check_shape(z, "theta (normalised)")
-        low, high = self.low(z.dtype, z.device), self.high(z.dtype, z.device)
+        low, high = self._bounds(z)
         return low + (z + 1) * (high - low) / 2
 
     # --- prior and spec --------------------------------------------------------------------

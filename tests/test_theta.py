@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -367,3 +368,18 @@ def test_units_name_each_parameters_own_unit():
         [Parameter("gain", 0.5, 2.0, 1.0, "m/s"), Parameter("noise", 0.0, 1.0, 0.1)]
     )
     assert space.units == {"gain": "m/s", "noise": ""}
+
+
+def test_coordinate_maps_keep_each_dtypes_bounds_and_callers_get_their_own_tensors():
+    # the maps build their bounds once per dtype and device: float64 must not reuse the float32
+    # bounds built first (0.1 and 0.7 are not float32 numbers), an edit of what `low()` returns
+    # must not reach them, and a used space pickles as a fresh one (a worker builds its own)
+    space = ThetaSpace([Parameter("a", 0.1, 0.7, 0.3), Parameter("b", -0.3, 0.9, 0.0)])
+    fresh = pickle.dumps(space)
+    space.normalise(space.low(torch.float32))
+    edges = torch.stack([space.low(torch.float64), space.high(torch.float64)])
+    assert space.normalise(edges).tolist() == [[-1.0, -1.0], [1.0, 1.0]]
+    assert not space.outside(edges).any()
+    space.low()[0] = 0.5
+    assert space.normalise(space.low())[0] == -1 and not space.outside(space.low()).any()
+    assert pickle.dumps(space) == fresh
