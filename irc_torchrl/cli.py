@@ -674,6 +674,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
     path = out / "summary.json"
     if not path.is_file():
         _check_stages(args, out)
+        _check_not_replacing(args, out)
         return
     try:
         summary = json.loads(path.read_text())
@@ -695,6 +696,38 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ValueError(
             f"--out: {out} holds the summary.json of irc {written_by}, which irc "
             f"{args.command} would overwrite; choose another folder"
+        )
+
+
+def _outputs(args: argparse.Namespace) -> re.Pattern:
+    """The names of what this command writes into its ``--out`` (its summary included)."""
+    from irc_torchrl.algorithms.recordings import RECORDING_NAME
+
+    # irc fit names its estimates' figures by method where it fits both, irc recover always
+    by_method = "_(map|marginal)"
+    fitted = by_method if getattr(args, "method", None) == "both" else ""
+    names = {
+        "simulate": RECORDING_NAME.pattern,
+        "fit": rf"beliefs\.npz|q_function\.png|(recovery|estimates){fitted}\.png"
+        r"|.+_beliefs_(overhead|time)\.png",
+        "recover": rf"config\.yaml|trials|(recovery|beliefs_overhead|beliefs_time){by_method}\.png",
+        "demo": r"config\.yaml|figures\.npz|(recovery|q_function|dp_comparison)\.png",
+    }
+    return re.compile(rf"summary\.json|{names[_writes(args)]}")
+
+
+def _check_not_replacing(args: argparse.Namespace, out: Path) -> None:
+    """Refuse an ``--out`` no earlier run of this command wrote (it holds no summary) that holds
+    something named as the command's output: the run would replace a user's file or folder."""
+    command = _writes(args)
+    if command == "train" or not out.is_dir():  # train resumes into a folder of its own
+        return
+    named = sorted(e.name for e in out.iterdir() if _outputs(args).fullmatch(e.name))
+    if named:
+        raise ValueError(
+            f"--out: {out} holds {named[0]!r}, a name irc {args.command} writes, but no "
+            f"summary.json of an earlier irc {command}: it is not irc's to replace; choose "
+            "another folder"
         )
 
 

@@ -941,6 +941,65 @@ def test_a_rerun_into_its_own_folder_leaves_nothing_of_the_earlier_run(tmp_path)
     assert figures == [*drawn, "q_function.png"]
 
 
+@pytest.mark.parametrize(
+    "command, name, folder",
+    [
+        (["simulate", "--format", "memmap"], "agent0", True),
+        (["simulate"], "agent3.csv", False),
+        (["fit", "rec.csv", "--method", "both"], "recovery_marginal.png", False),
+        (["fit", "rec.csv"], "beliefs.npz", True),
+        (["demo"], "summary.json", True),
+        (["demo", "--task", "firefly2d"], "trials", True),
+        (["recover"], "config.yaml", False),
+    ],
+)
+def test_a_run_refuses_to_replace_what_no_earlier_run_of_it_wrote(
+    tmp_path, capsys, command, name, folder
+):
+    """An ``--out`` holding a file or folder named as the command's output, but no summary of
+    an earlier run of it: the run replaced it, a lab's ``agent0/`` of raw sessions lost under
+    ``irc simulate --format memmap``. Refused before any work, the entry left as it was."""
+    out = tmp_path / "lab"
+    entry = out / name / "session1.mat" if folder else out / name
+    entry.parent.mkdir(parents=True)
+    entry.write_text("the lab's own")
+    assert main([*command, "--out", str(out), "--quiet"]) == 2
+    assert f"holds {name!r}, a name irc {command[0]} writes, but no" in capsys.readouterr().err
+    assert entry.read_text() == "the lab's own"
+
+
+def test_each_name_a_run_writes_is_one_it_refuses_to_replace_unowned(simulated, fitted, tmp_path):
+    """The check knows every name ``irc simulate`` and ``irc fit`` write (``stages/`` has its
+    own): each, alone in a folder of no earlier run, is refused."""
+    runs = {"simulate": (["simulate"], simulated), "fit": (["fit", "rec.csv", "--method", "map"],
+            fitted[0])}  # fmt: skip
+    for command, folder in runs.values():
+        names = sorted(e.name for e in folder.iterdir() if e.name != "stages")
+        assert len(names) >= 2, names
+        for name in names:
+            out = tmp_path / command[0] / name
+            (out / name).mkdir(parents=True)
+            assert main([*command, "--out", str(out), "--quiet"]) == 2, name
+
+
+def test_a_recording_copied_over_a_simulated_one_is_fitted_without_the_others_truth(tmp_path):
+    """The true θ of ``irc simulate``'s summary was attached by file name alone: another
+    agent's recording copied over ``agent0.csv`` was scored against agent 0's θ*. Trial count
+    and mean length tell them apart."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--out", str(sim), "--quiet", "n_agents=2", "n_trials=3"]) == 0
+    steps = [a["mean_steps"] for a in json.loads((sim / "summary.json").read_text())["agents"]]
+    assert steps[0] != steps[1]  # the case
+    shutil.copy(sim / "agent1.csv", sim / "agent0.csv")
+    config = RecordingFitConfig(n_screen=2, n_starts=1, max_iter=1)
+    files = [sim / "agent0.csv", sim / "agent1.csv"]
+    with pytest.warns(UserWarning, match=r"agent0.csv: 3 trials of .* irc simulate wrote"):
+        summary = recordings.fit_recordings(
+            files, tmp_path / "fit", config, method="map", free=["g_v"], progress=False
+        )
+    assert [("theta_true" in a) for a in summary["agents"]] == [False, True]
+
+
 def test_a_fit_of_a_recording_in_cm_reports_its_distances_in_metres(simulated, tmp_path):
     """With units declared the recording is converted to metres: θ̂ and the figures' axes said
     "distance", which a lab reading a goal radius of 0.5 could take for its own cm."""
@@ -1140,19 +1199,23 @@ def test_the_simulated_truth_is_the_one_irc_simulate_wrote_for_that_file(tmp_pat
     agents = [{"file": "a.csv", "theta_true": first}, {"file": "b.csv", "theta_true": second}]
     summary = {"command": "simulate", "task": "firefly2d", "agents": agents}
     (tmp_path / "summary.json").write_text(json.dumps(summary))
-    truth = recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d")
+
+    def truth_of(name: str):  # the summary names no trial counts: the recording is not read
+        return recordings._simulated_truth(tmp_path / name, space, "firefly2d", TensorDict())
+
+    truth = truth_of("b.csv")
     assert float(truth[space.index("g_v")]) == pytest.approx(1.5)
-    assert recordings._simulated_truth(tmp_path / "c.csv", space, "firefly2d") is None
+    assert truth_of("c.csv") is None
     (tmp_path / "summary.json").write_text(json.dumps({**summary, "task": "reach_and_hold"}))
     with pytest.raises(
         ValueError, match=r"b.csv: simulated for task 'reach_and_hold' \(.*\), fitted here as "
         r"'firefly2d'; expected that task's --model \(and its policy's --checkpoint\)$"
     ):
-        recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d")
+        truth_of("b.csv")
     # a file of one's own beside them is not the summary's: no truth, no refusal
-    assert recordings._simulated_truth(tmp_path / "c.csv", space, "firefly2d") is None
+    assert truth_of("c.csv") is None
     (tmp_path / "summary.json").write_text(json.dumps({**summary, "command": "fit"}))
-    assert recordings._simulated_truth(tmp_path / "b.csv", space, "firefly2d") is None
+    assert truth_of("b.csv") is None
 
 
 def _agent(file: str, converged: bool, truth: dict | None = None) -> dict:

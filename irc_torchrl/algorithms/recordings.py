@@ -80,6 +80,8 @@ __all__ = [
 
 #: file suffix per ``--format`` (memmap: a TensorDict folder, no suffix)
 FORMATS = {"csv": ".csv", "csv.gz": ".csv.gz", "npz": ".npz", "nwb": ".nwb", "memmap": ""}
+#: the name ``irc simulate`` gives a recording, in any of its formats
+RECORDING_NAME = re.compile(rf"agent\d+({'|'.join(re.escape(s) for s in FORMATS.values() if s)})?")
 #: what ``--method`` accepts: one estimator, or both (marginal reported, map kept beside it)
 FIT_METHODS = (*METHODS, "both")
 #: the correlation of two estimates from which the table names them as traded off by the data
@@ -197,8 +199,7 @@ def simulate_recordings(
             # an earlier run's summary would claim the true θ of recordings it did not write
             (out / "summary.json").unlink(missing_ok=True)
     # an earlier run's recordings this one did not rewrite would pass for this run's
-    recording = re.compile(rf"agent\d+({'|'.join(re.escape(s) for s in FORMATS.values() if s)})?")
-    stale = [n for n in earlier if isinstance(n, str) and recording.fullmatch(n)]
+    stale = [n for n in earlier if isinstance(n, str) and RECORDING_NAME.fullmatch(n)]
     remove_stale(out, stale, {agent["file"] for agent in agents})
     return summary
 
@@ -273,13 +274,17 @@ def _in_metres(unit: str, declared: Mapping[str, str] | None) -> str:
     return unit.replace("distance", "m") if metres else unit
 
 
-def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor | None:
+def _simulated_truth(
+    path: Path, space: ThetaSpace, task: str, recording: TensorDict
+) -> torch.Tensor | None:
     """The true θ of a recording written by ``irc simulate`` (its folder's summary), if any.
 
     It is checked in ``space`` before any fitting: a summary of ``irc simulate`` that names
     the recording but mangles its ``theta_true`` is refused, not ignored (the fit would be
     reported without its truth) nor found out after the fit; so is a recording it names as
-    simulated for another task than ``task``, the fit's.
+    simulated for another task than ``task``, the fit's. A ``recording`` whose trials are not
+    as many, or not as long on average, as the summary says is another file under that name
+    (a lab's own, one copied over it): it is fitted without a truth, with a warning.
     """
     summary = path.parent / "summary.json"
     try:
@@ -308,8 +313,27 @@ def _simulated_truth(path: Path, space: ThetaSpace, task: str) -> torch.Tensor |
             )
             if not numbers:
                 raise ValueError(f"{where} is {truth!r:.80}; expected {{name: number}}")
-            return space.from_dict(truth, field=where)
+            truth = space.from_dict(truth, field=where)
+            return truth if _as_simulated(path, recording, agent, summary) else None
     return None
+
+
+def _as_simulated(path: Path, recording: TensorDict, agent: dict, summary: Path) -> bool:
+    """Whether ``recording`` has the trial count and mean length ``irc simulate`` wrote for it
+    (``agent``, its entry in ``summary``; a summary without them is taken at its word)."""
+    n_trials, mean_steps = agent.get("n_trials"), agent.get("mean_steps")
+    if not isinstance(n_trials, int) or not isinstance(mean_steps, float):
+        return True
+    steps = float(recording["mask"].sum(-1).double().mean())
+    if len(recording) == n_trials and math.isclose(steps, mean_steps, rel_tol=1e-9):
+        return True
+    warnings.warn(
+        f"{path}: {len(recording)} trials of {steps:.4g} steps on average, not the {n_trials} "
+        f"of {mean_steps:.4g} irc simulate wrote under this name ({summary}): fitted without "
+        "its true θ",
+        stacklevel=3,
+    )
+    return False
 
 
 def _labels(paths: Sequence[Path]) -> list[str]:
@@ -379,12 +403,15 @@ def fit_recordings(
         actor, model, ckpt = load_ensemble_policy(checkpoint, model=model)
         actor = actor.to(target)  # whole: calibration's simulations run it as a policy
         space = fit_space(model.theta_space, free, config.theta)
-        truths = [_simulated_truth(p, space, model.name) for p in paths]
         start = time.perf_counter()
         units = {str(k): str(v) for k, v in config.units.items()}
         columns = {"time_column": config.time_column, "trial_column": config.trial_column}
         recordings = [read_trials(p, model, units=units, **columns) for p in paths]
         read_s = time.perf_counter() - start
+        truths = [
+            _simulated_truth(p, space, model.name, r)
+            for p, r in zip(paths, recordings, strict=True)
+        ]
         action_model = censored_action_model(
             actor, model, config.actor_dtype, config.motor_noise, config.lapse, config.fit_lapse
         )
