@@ -298,6 +298,10 @@ def config_to_dict(config: Any) -> dict:
     return dataclasses.asdict(config)
 
 
+#: what irc's commands take as options, not as ``key=value`` settings of their configs
+COMMAND_OPTIONS = ("seed", "device", "method", "free", "format", "checkpoint", "model", "task")
+
+
 def _valid_keys(config: Any, prefix: str = "") -> list[str]:
     keys = []
     for f in dataclasses.fields(config):
@@ -321,8 +325,8 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
         valid = _valid_keys(root)
         close = difflib.get_close_matches(prefix + dotted, valid, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        if prefix + dotted in ("seed", "device"):  # irc simulate's and irc fit's options
-            hint = f" (the {dotted} is the option --{dotted})"
+        if prefix + dotted in COMMAND_OPTIONS:
+            hint = f" (set by the option --{dotted})"
         raise KeyError(
             f"config: unknown key {prefix + dotted!r}{hint}; valid keys: {', '.join(valid)}"
         )

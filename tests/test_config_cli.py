@@ -260,12 +260,14 @@ def test_an_integer_written_with_an_exponent_is_that_integer(tmp_path):
 
 
 @pytest.mark.parametrize("load", [load_simulate_config, load_recording_fit_config])
-def test_a_device_setting_points_to_the_option(load):
-    """``irc simulate device=cpu`` listed the valid keys; the device is an option there, as
-    the seed is."""
-    hint = r"unknown key 'device' \(the device is the option --device\); valid keys: "
+@pytest.mark.parametrize("setting", ["device=cpu", "method=map", "format=npz", "free=g_v"])
+def test_a_setting_that_is_an_option_points_to_the_option(load, setting):
+    """``irc simulate device=cpu`` or ``irc fit method=map`` listed the valid keys; the device
+    and the method are options there, as the seed is."""
+    key = setting.partition("=")[0]
+    hint = rf"unknown key '{key}' \(set by the option --{key}\); valid keys: "
     with pytest.raises(KeyError, match=hint):
-        load(["device=cpu"])
+        load([setting])
 
 
 def test_help_lists_every_subcommand_with_a_purpose(capsys):
