@@ -763,13 +763,13 @@ MALFORMED = [
      r"trial \d+, field 'w': .* rad/s .*expected below 14 .*units=\{'w': 'deg/s'\}"),
     ("position in cm", "2d", ".csv", _scale(100.0, "x", "y"), ValueError,
      r"trial \d+, field 'x/y': the speed between samples of .*fastest\)\. A unit mistake\? "
-     r"Declare it: .*units=\{'x': 'cm'\}"),
+     r"Declare them: units\.x=cm units\.y=cm \(irc fit\) or units=\{'x': 'cm', 'y': 'cm'\}"),
     ("seconds read as ms", "2d", ".csv", _scale(0.001, "time"), ValueError,
      r"field 'x/y': the speed between samples .*Times in seconds given units\.time=ms \(a "
      r"median step of 0\.0001 s against the task's 0\.1 s\)\? Drop it\. Or a unit mistake of "
-     r"the positions\? Declare it: units\.x=cm"),
+     r"the positions\? Declare them: units\.x=cm units\.y=cm"),
     ("positions in cm sampled at 1 kHz", "2d", ".csv", _fast_in_cm, ValueError,
-     r"field 'x/y': the speed between samples .*fastest\)\. A unit mistake\? Declare it"),
+     r"field 'x/y': the speed between samples .*fastest\)\. A unit mistake\? Declare them"),
     ("1d position in cm", "1d", ".csv", _scale(100.0, "x"), ValueError,
      r"trial \d+, field 'x': the speed between samples .*expected below 15"),
     ("heading in degrees", "2d", ".csv", _scale(180 / math.pi, "heading"), ValueError,
@@ -1235,3 +1235,11 @@ def test_a_tasks_rate_limit_sets_the_speed_check(tmp_path, model2d, trials2d):
     with pytest.raises(ValueError, match=r"'x'/'y': each step moves 0\.01× as far") as caught:
         read_trials(fast, Unchecked())
     assert "expected below" not in str(caught.value)
+
+
+def test_a_written_recordings_times_are_its_steps_times_to_the_digit(tmp_path, trials2d, model2d):
+    # 3 × 0.1 s was written 0.30000000000000004, which a lab's `time == 0.3` lookup misses
+    write_trials(trials2d, tmp_path / "a.csv", model2d)
+    with open(tmp_path / "a.csv") as f:
+        times = [row["time"] for row in csv.DictReader(f)]
+    assert len(times) > 10 and all(t == repr(round(float(t), 1)) for t in times)

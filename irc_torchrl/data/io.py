@@ -426,10 +426,9 @@ def _field(trials: TensorDictBase, key: str, model: TaskModel) -> torch.Tensor:
     if key in trials.keys():
         return trials[key]
     n, steps = trials.shape
-    if key == "time":
-        return (torch.arange(steps, dtype=torch.float64, device=trials.device) * model.dt).expand(
-            n, steps
-        )
+    if key == "time":  # rounded: 3 × 0.1 is written 0.3, not 0.30000000000000004
+        time = torch.arange(steps, dtype=torch.float64, device=trials.device) * model.dt
+        return time.round(decimals=12).expand(n, steps)
     return torch.arange(n, device=trials.device).unsqueeze(-1).expand(n, steps)
 
 

@@ -261,12 +261,14 @@ def _check_speeds(
                 if field_unit == "distance" and 1 / 3 < step * 1000 / model.dt < 3
                 else "A unit mistake? "
             )
+            fields = name.split("/")  # the positions' speed: each may be the one undeclared
+            settings = " ".join(f"units.{n}={hint}" for n in fields)
             raise ValueError(
                 f"{where}, field {name!r}: {kind}{rate[i]:.6g} {unit} at time {at[i]:.6g} s; "
                 f"expected below {limit:.6g} {unit} (the task's rate_limit: by default "
                 f"{ABSURD:g}× the θ space's fastest). "
-                f"{timing}Declare it: units.{name.split('/')[0]}={hint} (irc fit) or "
-                f"units={{{name.split('/')[0]!r}: {hint!r}}} (read_trials), or similar"
+                f"{timing}Declare {'them' if len(fields) > 1 else 'it'}: {settings} (irc fit) "
+                f"or units={dict.fromkeys(fields, hint)} (read_trials), or similar"
             )
     for name, unit in units.items():
         if unit == "rad":
