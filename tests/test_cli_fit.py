@@ -971,9 +971,8 @@ def test_a_run_refuses_to_replace_what_no_earlier_run_of_it_wrote(
 def test_each_name_a_run_writes_is_one_it_refuses_to_replace_unowned(simulated, fitted, tmp_path):
     """The check knows every name ``irc simulate`` and ``irc fit`` write (``stages/`` has its
     own): each, alone in a folder of no earlier run, is refused."""
-    runs = {"simulate": (["simulate"], simulated), "fit": (["fit", "rec.csv", "--method", "map"],
-            fitted[0])}  # fmt: skip
-    for command, folder in runs.values():
+    runs = [(["simulate"], simulated), (["fit", "rec.csv", "--method", "map"], fitted[0])]
+    for command, folder in runs:
         names = sorted(e.name for e in folder.iterdir() if e.name != "stages")
         assert len(names) >= 2, names
         for name in names:
