@@ -152,6 +152,12 @@ def test_the_key_follows_settings_checkpoint_data_and_a_tasks_source(tmp_path):
     ]
     assert len({key, *changed}) == 6
     assert stage_key({"seed": 0}, "firefly2d", None, [data]) == key  # a packaged name
+    # a task's θ space caches its bounds once used: a run resumed in the same process (the
+    # first run's fits filled it) read none of its stages
+    model = Firefly2DModel()
+    unused = stage_key({"seed": 0}, checkpoint, model, [data])
+    model.theta_space.normalise(model.theta_space.default())
+    assert stage_key({"seed": 0}, checkpoint, model, [data]) == unused
     # a tensor in the settings by its bytes: torch prints a long one shortened, and a key of
     # its print read another run's fits as this one's
     values = torch.arange(2000.0)

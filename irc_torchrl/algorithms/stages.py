@@ -169,7 +169,7 @@ def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int
         return
     plain = value is None or isinstance(value, (bool, int, float, complex, str, bytes))
     code = inspect.isroutine(value) or inspect.isclass(value) or inspect.ismodule(value)
-    inner = vars(value) if hasattr(value, "__dict__") and not code else None
+    inner = _state(value) if hasattr(value, "__dict__") and not code else None
     if plain or depth > _DEPTH or id(value) in seen:
         items = None
     elif isinstance(value, Mapping):
@@ -191,6 +191,17 @@ def _digest_value(digest: Any, name: str, value: Any, seen: set[int], depth: int
     seen.add(id(value))
     for key, item in items:
         _digest_value(digest, f"{name}.{key}", item, seen, depth + 1)
+
+
+def _state(value: Any) -> dict:
+    """An object's attributes as pickling keeps them (its ``__getstate__``, by default its
+    ``vars``): what it drops there is a cache (a θ space's bounds), filled by its use, not by
+    what it was built with."""
+    try:
+        state = value.__getstate__()
+    except TypeError:  # an object that refuses pickling
+        state = None
+    return state if isinstance(state, dict) else vars(value)
 
 
 def _repr(value: Any) -> str:
