@@ -13,7 +13,7 @@ import re
 from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import yaml
 
@@ -160,6 +160,10 @@ class Firefly1DConfig:
 class SimulateConfig:
     """``irc simulate``: agents acting by a trained policy plus motor noise, in a known world."""
 
+    #: what ``irc simulate`` takes as options, not as settings
+    command_options: ClassVar[tuple[str, ...]] = (
+        *("checkpoint", "model", "seed", "device", "task", "format"),
+    )
     n_agents: int = 1
     n_trials: int = 100
     #: std of the Gaussian motor noise added to the policy's action (then clipped to the bounds)
@@ -196,6 +200,10 @@ class SimulateConfig:
 class RecordingFitConfig:
     """``irc fit``: Algorithm 2 on recorded trials, actions scored by a censored Gaussian."""
 
+    #: what ``irc fit`` takes as options, not as settings
+    command_options: ClassVar[tuple[str, ...]] = (
+        *("checkpoint", "model", "seed", "device", "method", "free"),
+    )
     #: prior draws scored by likelihood alone; Newton starts from the best ``n_starts``
     n_screen: int = 16
     n_starts: int = 2
@@ -298,10 +306,6 @@ def config_to_dict(config: Any) -> dict:
     return dataclasses.asdict(config)
 
 
-#: what irc's commands take as options, not as ``key=value`` settings of their configs
-COMMAND_OPTIONS = ("seed", "device", "method", "free", "format", "checkpoint", "model", "task")
-
-
 def _valid_keys(config: Any, prefix: str = "") -> list[str]:
     keys = []
     for f in dataclasses.fields(config):
@@ -325,7 +329,7 @@ def _set(config: Any, dotted: str, value: Any, root: Any, prefix: str = "") -> N
         valid = _valid_keys(root)
         close = difflib.get_close_matches(prefix + dotted, valid, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        if prefix + dotted in COMMAND_OPTIONS:
+        if prefix + dotted in getattr(root, "command_options", ()):
             hint = f" (set by the option --{dotted})"
         raise KeyError(
             f"config: unknown key {prefix + dotted!r}{hint}; valid keys: {', '.join(valid)}"
