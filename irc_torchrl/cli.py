@@ -713,7 +713,8 @@ def _outputs(args: argparse.Namespace) -> re.Pattern:
         "recover": rf"config\.yaml|trials|(recovery|beliefs_overhead|beliefs_time){by_method}\.png",
         "demo": r"config\.yaml|figures\.npz|(recovery|q_function|dp_comparison)\.png",
     }
-    return re.compile(rf"summary\.json|{names[_writes(args)]}")
+    # a file system that ignores case (macOS, Windows) replaces `Trials/` by `trials/`
+    return re.compile(rf"summary\.json|{names[_writes(args)]}", re.IGNORECASE)
 
 
 def _check_not_replacing(args: argparse.Namespace, out: Path) -> None:
@@ -727,7 +728,7 @@ def _check_not_replacing(args: argparse.Namespace, out: Path) -> None:
         raise ValueError(
             f"--out: {out} holds {named[0]!r}, a name irc {args.command} writes, but no "
             f"summary.json of an earlier irc {command}: it is not irc's to replace; choose "
-            "another folder"
+            "another folder (or remove it, if a run stopped while moving its files in left it)"
         )
 
 
