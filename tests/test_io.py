@@ -323,7 +323,7 @@ def _oversampled(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         rows = columns["trial"] == label
         time = columns["time"][rows].astype(np.float64)
         fine = np.linspace(time[0], time[-1], 2 * len(time) - 1)
-        held = np.searchsorted(time, fine, side="right") - 1
+        held = np.searchsorted(time, fine + 1e-9, side="right") - 1  # linspace's rounding
         for key, values in columns.items():
             held_key = key in ("trial", "a_v", "a_w", "action")
             out[key].append(values[rows][held] if held_key else np.interp(fine, time, values[rows]))
