@@ -723,7 +723,8 @@ def _check_not_replacing(args: argparse.Namespace, out: Path) -> None:
     command = _writes(args)
     if command == "train" or not out.is_dir():  # train resumes into a folder of its own
         return
-    named = sorted(e.name for e in out.iterdir() if _outputs(args).fullmatch(e.name))
+    outputs = _outputs(args)
+    named = sorted(e.name for e in out.iterdir() if outputs.fullmatch(e.name))
     if named:
         raise ValueError(
             f"--out: {out} holds {named[0]!r}, a name irc {args.command} writes, but no "

@@ -162,7 +162,12 @@ class SimulateConfig:
 
     #: what ``irc simulate`` takes as options, not as settings
     command_options: ClassVar[tuple[str, ...]] = (
-        *("checkpoint", "model", "seed", "device", "task", "format"),
+        "checkpoint",
+        "model",
+        "seed",
+        "device",
+        "task",
+        "format",
     )
     n_agents: int = 1
     n_trials: int = 100
@@ -202,7 +207,12 @@ class RecordingFitConfig:
 
     #: what ``irc fit`` takes as options, not as settings
     command_options: ClassVar[tuple[str, ...]] = (
-        *("checkpoint", "model", "seed", "device", "method", "free"),
+        "checkpoint",
+        "model",
+        "seed",
+        "device",
+        "method",
+        "free",
     )
     #: prior draws scored by likelihood alone; Newton starts from the best ``n_starts``
     n_screen: int = 16
